@@ -1,0 +1,5 @@
+import sys
+
+from batchpose.cli import main
+
+sys.exit(main())

@@ -1,0 +1,130 @@
+"""Command-line interface: ``batchpose run | convert | report | compare``.
+
+Any :class:`~batchpose.errors.BatchposeError` is printed as one line on stderr and exits with code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from batchpose.errors import BatchposeError
+
+log = logging.getLogger("batchpose")
+
+
+def _cmd_convert(args: argparse.Namespace) -> None:
+    from batchpose import convert
+
+    out = convert.main(Path(args.src), Path(args.out), fmt=args.format, overwrite=args.overwrite)
+    print(f"wrote {out}")
+
+
+def _cmd_run(args: argparse.Namespace) -> None:
+    from batchpose import run
+
+    run.main(
+        Path(args.pipeline),
+        Path(args.manifest),
+        Path(args.out),
+        cache_dir=Path(args.cache) if args.cache else None,
+        overrides=args.set or [],
+        jobs=args.jobs,
+        backend=args.backend,
+        scheduler=args.scheduler,
+        overwrite=args.overwrite,
+        limit=args.limit,
+    )
+
+
+def _cmd_report(args: argparse.Namespace) -> None:
+    from batchpose import make_report
+
+    out = make_report.main(Path(args.run_dir), overwrite=True)
+    print(f"report: {out}")
+
+
+def _cmd_compare(args: argparse.Namespace) -> None:
+    from batchpose import make_report
+
+    out = make_report.compare([Path(p) for p in args.run_dirs], Path(args.out))
+    print(f"compare: {out}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="batchpose",
+        description="Learning-free 6D pose (GNC-Pose) of textured objects in camera logs, on CPU, in batch.",
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser(
+        "run",
+        help="run the pipeline: ingest -> templates -> estimate -> MCAP -> report",
+        description="Run a pipeline over the frames of a data manifest. Finished stages and finished "
+        "(frame, object) pairs are skipped on a rerun; a killed run resumes.",
+    )
+    r.add_argument("pipeline", help="pipeline YAML, e.g. pipelines/gnc_pose.yaml")
+    r.add_argument("--manifest", required=True, help="data manifest YAML, e.g. data_manifest/demo.yaml")
+    r.add_argument("--out", required=True, help="run directory for all outputs")
+    r.add_argument("--cache", help="template cache directory (default ~/.cache/batchpose)")
+    r.add_argument(
+        "--set", action="append", metavar="KEY=VALUE",
+        help="override a pipeline field, e.g. --set gnc.kappa=3 (repeatable)",
+    )
+    r.add_argument("--jobs", type=int, default=2, help="parallel workers (default 2)")
+    r.add_argument(
+        "--backend", choices=("loky", "dask"), default="loky",
+        help="joblib backend: loky (local processes, default) or dask (a distributed cluster)",
+    )
+    r.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (with --backend dask)")
+    r.add_argument("--overwrite", action="store_true", help="recompute every stage, ignoring earlier results")
+    r.add_argument("--limit", type=int, help="process only the first N frames")
+    r.set_defaults(func=_cmd_run)
+
+    c = sub.add_parser(
+        "convert",
+        help="write a folder data set (YCB-Video, BOP, images) as an MCAP log",
+        description="Write a folder data set as MCAP: /camera/image (foxglove.CompressedImage, bytes "
+        "copied, never re-encoded), /camera/calibration (foxglove.CameraCalibration) and, when present, "
+        "/ground_truth/poses.",
+    )
+    c.add_argument("src", help="data set folder")
+    c.add_argument("out", help="output .mcap file (must not exist unless --overwrite)")
+    c.add_argument("--format", required=True, choices=("ycbv", "bop", "images"), help="layout of SRC")
+    c.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    c.set_defaults(func=_cmd_convert)
+
+    rep = sub.add_parser("report", help="(re)build RUN_DIR/report from a finished run")
+    rep.add_argument("run_dir", help="a run directory written by `batchpose run`")
+    rep.set_defaults(func=_cmd_report)
+
+    cmp_ = sub.add_parser("compare", help="compare several runs side by side (table + curves)")
+    cmp_.add_argument("run_dirs", nargs="+", help="run directories")
+    cmp_.add_argument("--out", required=True, help="output directory for the comparison page")
+    cmp_.set_defaults(func=_cmd_compare)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(levelname)s %(message)s" if args.verbose else "%(message)s",
+    )
+    try:
+        args.func(args)
+    except BatchposeError as e:
+        print(f"batchpose: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("batchpose: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,164 @@
+"""Frames, cameras and ground-truth poses: the records every reader yields and every stage consumes.
+
+Images stay encoded (``image_format`` + ``image_data``) until a worker needs pixels, so a frame is cheap
+to pass between processes and PNG/JPEG bytes can be copied into MCAP without re-encoding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from batchpose.errors import CameraError, ImageError
+
+#: Raw encodings understood by :func:`decode_image` (foxglove.RawImage / sensor_msgs/Image names).
+RAW_ENCODINGS = {
+    "rgb8": (3, np.uint8),
+    "bgr8": (3, np.uint8),
+    "rgba8": (4, np.uint8),
+    "bgra8": (4, np.uint8),
+    "mono8": (1, np.uint8),
+    "8UC1": (1, np.uint8),
+    "8UC3": (3, np.uint8),
+    "mono16": (1, np.uint16),
+    "16UC1": (1, np.uint16),
+}
+COMPRESSED_FORMATS = ("png", "jpeg")
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera with optional distortion.
+
+    Attributes:
+        K: (3, 3) float64 intrinsics, OpenCV convention (pixel centres at integer coordinates).
+        width: image width in pixels.
+        height: image height in pixels.
+        dist: (N,) float64 distortion coefficients in OpenCV order (empty: none).
+        distortion_model: "" / "plumb_bob" / "rational_polynomial".
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    distortion_model: str = ""
+
+    def validate(self, where: str = "camera") -> "Camera":
+        """Raise :class:`CameraError` naming ``where`` unless K is a finite, positive-focal 3x3 matrix."""
+        K = np.asarray(self.K, dtype=np.float64)
+        if K.shape != (3, 3):
+            raise CameraError(f"{where}: intrinsics K must be 3x3, got shape {K.shape}")
+        if not np.all(np.isfinite(K)):
+            raise CameraError(f"{where}: intrinsics K contains NaN or inf: {K.tolist()}")
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CameraError(f"{where}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+        if self.width <= 0 or self.height <= 0:
+            raise CameraError(f"{where}: image size must be positive, got {self.width}x{self.height}")
+        if self.dist.size and not np.all(np.isfinite(self.dist)):
+            raise CameraError(f"{where}: distortion coefficients contain NaN or inf")
+        return self
+
+
+@dataclass(frozen=True)
+class ObjectPose:
+    """A (ground-truth) pose of one object in one frame.
+
+    Attributes:
+        obj_name: object name, e.g. "003_cracker_box".
+        cam_from_model: (4, 4) float64 rigid transform, metres.
+    """
+
+    obj_name: str
+    cam_from_model: np.ndarray
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera image with its calibration and, when the data set has it, ground truth.
+
+    Attributes:
+        frame_id: unique id within the data set (e.g. "0001/000003" or "mcap:1700000000000000000").
+        scene_id: BOP scene id (YCB-Video: video number; data_syn: 10000; logs: 0).
+        im_id: BOP image id (YCB-Video: frame number; logs: running index).
+        stamp_ns: capture time in integer nanoseconds (log time for MCAP).
+        camera: calibration in force at this frame.
+        image_format: "png", "jpeg" or a raw encoding from :data:`RAW_ENCODINGS`.
+        image_data: encoded bytes (compressed) or raw pixel bytes.
+        raw_step: bytes per row for raw encodings (0 for compressed).
+        gt: ground-truth poses present in the frame (empty when unknown).
+        source: where the frame came from (file path or "file.mcap:/topic"), for error messages.
+    """
+
+    frame_id: str
+    scene_id: int
+    im_id: int
+    stamp_ns: int
+    camera: Camera
+    image_format: str
+    image_data: bytes
+    raw_step: int = 0
+    gt: tuple[ObjectPose, ...] = ()
+    source: str = ""
+
+
+def decode_image(frame: Frame) -> np.ndarray:
+    """Decode a frame's pixels.
+
+    Returns:
+        (H, W, 3) uint8 RGB image (mono is replicated, 16-bit is scaled to 8-bit, alpha dropped).
+
+    Raises:
+        ImageError: empty data, undecodable bytes, unsupported encoding or a size that disagrees with
+            the calibration.
+    """
+    where = frame.source or frame.frame_id
+    if not frame.image_data:
+        raise ImageError(f"{where}: image is empty (0 bytes)")
+    fmt = frame.image_format.lower()
+    if fmt in ("jpg",):
+        fmt = "jpeg"
+    if fmt in COMPRESSED_FORMATS:
+        buf = np.frombuffer(frame.image_data, dtype=np.uint8)
+        img = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        if img is None or img.size == 0:
+            raise ImageError(f"{where}: cannot decode {fmt} image ({len(frame.image_data)} bytes)")
+        if img.dtype == np.uint16:
+            img = (img / 257).astype(np.uint8)
+        if img.ndim == 2:
+            rgb = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+        elif img.shape[2] == 4:
+            rgb = cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
+        else:
+            rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    elif frame.image_format in RAW_ENCODINGS:
+        channels, dtype = RAW_ENCODINGS[frame.image_format]
+        w, h = frame.camera.width, frame.camera.height
+        itemsize = np.dtype(dtype).itemsize
+        step = frame.raw_step or w * channels * itemsize
+        if w <= 0 or h <= 0 or step * h > len(frame.image_data) or step < w * channels * itemsize:
+            raise ImageError(
+                f"{where}: raw {frame.image_format} image of {w}x{h} (step {step}) needs "
+                f"{step * h} bytes, got {len(frame.image_data)}"
+            )
+        rows = np.frombuffer(frame.image_data[: step * h], dtype=np.uint8).reshape(h, step)
+        img = rows[:, : w * channels * itemsize].copy().view(dtype).reshape(h, w, channels)
+        if dtype == np.uint16:
+            img = (img / 257).astype(np.uint8)
+        enc = frame.image_format
+        if channels == 1:
+            rgb = np.repeat(img, 3, axis=2)
+        elif enc in ("bgr8", "bgra8"):
+            rgb = np.ascontiguousarray(img[:, :, 2::-1])
+        else:
+            rgb = np.ascontiguousarray(img[:, :, :3])
+    else:
+        raise ImageError(
+            f"{where}: unsupported image encoding {frame.image_format!r} "
+            f"(expected one of {', '.join(COMPRESSED_FORMATS + tuple(RAW_ENCODINGS))})"
+        )
+    if rgb.shape[0] == 0 or rgb.shape[1] == 0:
+        raise ImageError(f"{where}: image has zero size {rgb.shape[1]}x{rgb.shape[0]}")
+    return rgb
