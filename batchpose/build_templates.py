@@ -1,0 +1,125 @@
+"""Stage: build or load the cached template library (and model voxel grid) of each object.
+
+Cache layout: ``CACHE/templates/<obj_name>-<key>/{views.parquet, templates.npz, voxels.npz}``, where key
+hashes the mesh content, the mesh/render/feature config and the template camera. A second build with the
+same key loads and renders nothing. Entries are written to a temporary folder and renamed when complete.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from batchpose.config import EstimatorConfig, config_hash
+from batchpose.errors import DataError
+from batchpose.mesh import ObjectModel
+from batchpose.templates import TemplateLibrary, render_templates
+from batchpose.weights import model_voxel_grid
+
+log = logging.getLogger("batchpose")
+
+FILES = ("views.parquet", "templates.npz", "voxels.npz")
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("BATCHPOSE_CACHE", Path.home() / ".cache" / "batchpose"))
+
+
+def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: int):
+    """Template intrinsics and size: the data set camera's, or ``render.width/height`` with K rescaled."""
+    w = conf.render.width or width or 640
+    h = conf.render.height or height or 480
+    K = np.asarray(K, np.float64).copy()
+    if width and (w, h) != (width, height):
+        K[0] *= w / width
+        K[1] *= h / height
+    return K, w, h
+
+
+def library_key(model: ObjectModel, conf: EstimatorConfig, K: np.ndarray, width: int, height: int) -> str:
+    return config_hash(
+        model.content_hash, model.scale, conf.render, conf.features,
+        np.round(np.asarray(K, float), 4).tolist(), width, height,
+    )
+
+
+def library_dir(cache_dir: Path, model: ObjectModel, key: str) -> Path:
+    return Path(cache_dir) / "templates" / f"{model.name}-{key}"
+
+
+def save(lib: TemplateLibrary, out_dir: Path, voxel_m: float) -> Path:
+    """Write a library atomically (temporary folder, then rename). Returns ``out_dir``."""
+    out_dir = Path(out_dir)
+    tmp = out_dir.with_name(out_dir.name + f".tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    lib.views.to_parquet(tmp / "views.parquet", index=False)
+    np.savez(
+        tmp / "templates.npz", view_ids=lib.view_ids, xy=lib.xy, desc=lib.desc, pts3d=lib.pts3d, K=lib.K,
+        size=np.array([lib.width, lib.height]), obj_name=np.array(lib.obj_name), key=np.array(lib.key),
+    )
+    keys, counts = model_voxel_grid(lib.pts3d, voxel_m)
+    np.savez(tmp / "voxels.npz", keys=keys, counts=counts, voxel_m=np.array(voxel_m))
+    try:
+        os.replace(tmp, out_dir)
+    except OSError:  # another worker finished the same library first: keep theirs
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir
+
+
+def load(lib_dir: Path) -> TemplateLibrary:
+    lib_dir = Path(lib_dir)
+    try:
+        views = pd.read_parquet(lib_dir / "views.parquet")
+        with np.load(lib_dir / "templates.npz") as z:
+            return TemplateLibrary(
+                obj_name=str(z["obj_name"]), key=str(z["key"]), K=z["K"], width=int(z["size"][0]),
+                height=int(z["size"][1]), views=views, view_ids=z["view_ids"], xy=z["xy"], desc=z["desc"],
+                pts3d=z["pts3d"],
+            )
+    except (OSError, KeyError, ValueError) as e:
+        raise DataError(f"{lib_dir}: template library is unreadable ({e}); delete it or rerun with --overwrite")
+
+
+def main(
+    model: ObjectModel,
+    conf: EstimatorConfig,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    cache_dir: Path,
+    overwrite: bool = False,
+    renderer=None,
+) -> Path:
+    """Build (or find) the template library of one object; returns its cache folder."""
+    K_t, w, h = template_camera(conf, K, width, height)
+    key = library_key(model, conf, K_t, w, h)
+    out = library_dir(cache_dir, model, key)
+    if not overwrite and all((out / f).is_file() for f in FILES):
+        log.info("Skipping %s: template library cached (%s)", model.name, out)
+        return out
+    if renderer is None:
+        from batchpose.render import get_renderer  # noqa: PLC0415  (only stage that renders)
+
+        renderer = get_renderer()
+    t0 = time.perf_counter()
+    n_views = conf.render.n_views * max(len(conf.render.distances_m or conf.render.image_fractions), 1)
+    if conf.render.view_preset == "paper":
+        n_views = int(round(360 / conf.render.paper_azimuth_step_deg))
+    with tqdm(total=n_views, desc=f"templates {model.name}", unit="view", leave=False) as bar:
+        lib = render_templates(model, K_t, w, h, conf.render, conf.features, renderer, key, bar.update)
+    if overwrite and out.exists():
+        shutil.rmtree(out)
+    save(lib, out, conf.weights.voxel_m)
+    log.info(
+        "built %s: %d views, %d keypoints in %.1f s", model.name, lib.n_views, len(lib.desc),
+        time.perf_counter() - t0,
+    )
+    return out

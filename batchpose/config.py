@@ -1,0 +1,299 @@
+"""Pipeline configuration: frozen dataclasses whose defaults are SPEC.md's values.
+
+A pipeline YAML (``pipelines/*.yaml``) sets any subset of these fields; unknown keys are an error.
+``--set section.field=value`` overrides one field (the value is parsed as YAML).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from batchpose.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    """How meshes are loaded."""
+
+    units: str = "auto"
+    """"m", "mm", or "auto": a bounding-box diagonal > ``mm_diagonal_threshold`` means millimetres."""
+    on_millimetres: str = "convert"
+    """What to do with a millimetre mesh under ``units: auto``: "convert" (scale 1/1000, warn) or "refuse"."""
+    mm_diagonal_threshold: float = 5.0
+    """Bounding-box diagonal (in file units) above which a mesh is taken to be in millimetres (SPEC §1)."""
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Template views (SPEC §1)."""
+
+    view_preset: str = "sphere"
+    """"sphere": Fibonacci sampling of the whole view sphere; "paper": one azimuth ring at a fixed height."""
+    n_views: int = 160
+    """Viewpoints on the sphere (``sphere`` preset)."""
+    min_elevation_deg: float = -90.0
+    """Lowest camera elevation above the model's x-y plane (``sphere`` preset); -90 covers the whole sphere."""
+    paper_azimuth_step_deg: float = 10.0
+    """Azimuth step over [-180, 180) (``paper`` preset)."""
+    paper_height_m: float = 1.0
+    """Camera height above the model origin (``paper`` preset); the distance is ``distances_m[0]``."""
+    distances_m: tuple[float, ...] = ()
+    """Camera distances in metres; empty: chosen per object from ``image_fractions``."""
+    image_fractions: tuple[float, ...] = (0.5, 0.25)
+    """With automatic distances: the object's diameter spans this fraction of the image's shorter side."""
+    width: int = 0
+    """Template image width; 0: the data set camera's width (or 640)."""
+    height: int = 0
+    """Template image height; 0: the data set camera's height (or 480)."""
+    shading: str = "flat"
+    """"flat" (albedo only, matches texture) or "lit" (a headlight plus ambient light)."""
+    znear_m: float = 0.01
+    zfar_m: float = 20.0
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """SIFT features, for templates and queries alike."""
+
+    n_features: int = 0
+    """Keep at most this many keypoints per image (0: all)."""
+    contrast_threshold: float = 0.04
+    edge_threshold: float = 10.0
+    sigma: float = 1.6
+    root_sift: bool = False
+    """Use RootSIFT (Hellinger-normalised) descriptors."""
+    crop_padding_px: int = 16
+    """Templates: run SIFT only on the object's bounding box plus this margin (saves time, same features)."""
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """2D-3D correspondences (SPEC §2)."""
+
+    direction: str = "template_to_query"
+    """"template_to_query": ratio test from each template keypoint into the frame's keypoints;
+    "query_to_template": from each frame keypoint into the object's template descriptors."""
+    ratio: float = 0.75
+    """Lowe's ratio-test threshold."""
+    distinct_3d_m: float = 0.01
+    """query_to_template: the ratio is taken against the nearest neighbour whose 3D point is farther than
+    this from the best match's (a second view of the same surface point is not a rival)."""
+    top_k_templates: int = 3
+    prefilter_views: int = 0
+    """template_to_query: first vote for views with each frame keypoint's nearest template descriptor and
+    test only the keypoints of the ``prefilter_views`` most-voted views (0: test every view)."""
+    """Keep the pairs of the k templates with the most surviving matches."""
+    flann_trees: int = 4
+    flann_checks: int = 64
+    roi: str = "none"
+    """"none": whole image; "gt_box": oracle box from ground truth (evaluation only, never default)."""
+    roi_margin_px: int = 24
+
+
+@dataclass(frozen=True)
+class WeightsConfig:
+    """Geometry-aware weights (SPEC §3)."""
+
+    mode: str = "correspondences"
+    """"correspondences": voxel support over this frame's 3D points; "model": support over all template
+    keypoints of the library; "none": every weight is 1 (the no_geom_weights ablation)."""
+    voxel_m: float = 0.005
+    w_min: float = 0.2
+
+
+@dataclass(frozen=True)
+class GncConfig:
+    """RANSAC initialisation, GNC-PnP with dual-filter inlier selection, final LM (SPEC §4)."""
+
+    enabled: bool = True
+    """False: RANSAC-PnP + LM only (the ransac_only ablation)."""
+    ransac_reproj_px: float = 8.0
+    ransac_iterations: int = 1000
+    ransac_confidence: float = 0.999
+    residual: str = "pixels"
+    """"pixels": r = ||proj - x||; "squared": r = ||proj - x||^2."""
+    kappa: float = 5.0
+    epsilon: float = 1e-6
+    mu0_from: str = "ransac_inliers"
+    """Median for mu0 over "all" correspondences (the paper) or over the RANSAC inliers."""
+    tau_gnc: float = 0.5
+    tau_geom: float = 0.25
+    min_inliers: int = 6
+    gamma: float = 0.5
+    mu_final_px: float = 0.5
+    max_iterations: int = 50
+    final_lm: bool = True
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Everything that decides a pose, one section per stage."""
+
+    method: str = "gnc_pose"
+    """"gnc_pose" or "tp_ub" (template upper bound: needs ground truth, evaluation only)."""
+    min_matches: int = 6
+    """Fewer 2D-3D pairs than this: status too_few_matches."""
+    confidence_inliers: float = 15.0
+    """Confidence = (1 - exp(-n_inliers / this)) * exp(-median_residual_px / confidence_residual_px)."""
+    confidence_residual_px: float = 4.0
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    weights: WeightsConfig = field(default_factory=WeightsConfig)
+    gnc: GncConfig = field(default_factory=GncConfig)
+
+
+_CHOICES = {
+    ("mesh", "units"): ("auto", "m", "mm"),
+    ("mesh", "on_millimetres"): ("convert", "refuse"),
+    ("render", "view_preset"): ("sphere", "paper"),
+    ("render", "shading"): ("flat", "lit"),
+    ("match", "direction"): ("template_to_query", "query_to_template"),
+    ("match", "roi"): ("none", "gt_box"),
+    ("weights", "mode"): ("correspondences", "model", "none"),
+    ("gnc", "residual"): ("pixels", "squared"),
+    ("gnc", "mu0_from"): ("all", "ransac_inliers"),
+    ("", "method"): ("gnc_pose", "tp_ub"),
+}
+
+
+def _coerce(value: Any, tp: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        (inner, _) = typing.get_args(tp)
+        return tuple(_coerce(v, inner, where) for v in value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true/false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def from_dict(cls: type, data: dict | None, where: str = "config") -> Any:
+    """Build dataclass ``cls`` from a nested dict; unknown keys and wrong types raise ConfigError."""
+    data = data or {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} "
+            f"(expected one of: {', '.join(fields)})"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        tp = hints[name]
+        sub = f"{where}.{name}"
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = from_dict(tp, value, sub)
+        else:
+            kwargs[name] = _coerce(value, tp, sub)
+    obj = cls(**kwargs)
+    return obj
+
+
+def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
+    """Check enumerated fields and value ranges; raise ConfigError naming the field."""
+    for (section, name), choices in _CHOICES.items():
+        value = getattr(getattr(conf, section) if section else conf, name)
+        if value not in choices:
+            key = f"{section}.{name}" if section else name
+            raise ConfigError(f"{where}: {key} = {value!r}, expected one of {', '.join(choices)}")
+    if not 0 < conf.match.ratio <= 1:
+        raise ConfigError(f"{where}: match.ratio must be in (0, 1], got {conf.match.ratio}")
+    if conf.render.n_views < 1 or conf.match.top_k_templates < 1:
+        raise ConfigError(f"{where}: render.n_views and match.top_k_templates must be >= 1")
+    if conf.weights.voxel_m <= 0:
+        raise ConfigError(f"{where}: weights.voxel_m must be positive, got {conf.weights.voxel_m}")
+    if not 0 < conf.gnc.gamma < 1:
+        raise ConfigError(f"{where}: gnc.gamma must be in (0, 1), got {conf.gnc.gamma}")
+    return conf
+
+
+def to_dict(conf: Any) -> dict:
+    """Plain nested dict (tuples as lists) for YAML/JSON output and hashing."""
+    out = dataclasses.asdict(conf)
+
+    def fix(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [fix(x) for x in v]
+        return v
+
+    return fix(out)
+
+
+def config_hash(*parts: Any) -> str:
+    """Stable short hash of config sections / plain values (for cache keys)."""
+    blob = json.dumps(
+        [to_dict(p) if dataclasses.is_dataclass(p) else p for p in parts], sort_keys=True, default=str
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    """Apply ``a.b=value`` overrides (value parsed as YAML) to a nested dict, returning a new dict."""
+    data = json.loads(json.dumps(data))  # deep copy of plain data
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. gnc.kappa=3")
+        key, raw = item.split("=", 1)
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"--set {item!r}: cannot parse value: {e}") from None
+        node = data
+        parts = key.strip().split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {item!r}: {p} is not a section")
+        node[parts[-1]] = value
+    return data
+
+
+def load_yaml(path: Path) -> dict:
+    """Read a YAML mapping; missing file or bad YAML raise ConfigError naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        msg = str(e).replace("\n", " ")
+        raise ConfigError(f"{path}: not valid YAML: {msg}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def load_estimator_config(data: dict, where: str = "pipeline") -> EstimatorConfig:
+    return validate(from_dict(EstimatorConfig, data, where), where)

@@ -1,0 +1,173 @@
+"""RANSAC-PnP initialisation, GNC-PnP with dual-filter inlier selection, final LM (SPEC §4). Pure."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from batchpose.config import GncConfig
+
+
+@dataclass
+class PnpResult:
+    """Outcome of :func:`solve_pose`.
+
+    Attributes:
+        status: "ok", "too_few_matches" or "pnp_failed"; reason says why when not ok.
+        cam_from_model: (4, 4) model->camera, metres (None when failed).
+        inliers: (N,) bool final inlier set.
+        residuals_px: (N,) reprojection error of every correspondence at the final pose, pixels.
+        timings: seconds per stage: ransac, gnc, lm.
+        iterations: GNC iterations run.
+    """
+
+    status: str
+    reason: str = ""
+    cam_from_model: np.ndarray | None = None
+    inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    timings: dict[str, float] = field(default_factory=dict)
+    iterations: int = 0
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+    @property
+    def median_residual_px(self) -> float:
+        return float(np.median(self.residuals_px[self.inliers])) if self.n_inliers else float("nan")
+
+
+def reprojection_errors(
+    X: np.ndarray, x: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray
+) -> np.ndarray:
+    """||project(K, R X + t) - x|| in pixels: X (N, 3) metres, x (N, 2) pixels -> (N,) float64."""
+    if len(X) == 0:
+        return np.zeros(0)
+    proj, _ = cv2.projectPoints(X, rvec, tvec, K, dist)
+    return np.linalg.norm(proj.reshape(-1, 2) - x, axis=1)
+
+
+def to_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+    T[:3, 3] = np.asarray(tvec, np.float64).reshape(3)
+    return T
+
+
+def _check(x: np.ndarray, X: np.ndarray, w_geom: np.ndarray) -> None:
+    if x.ndim != 2 or x.shape[1] != 2:
+        raise ValueError(f"image points must have shape (N, 2), got {x.shape}")
+    if X.shape != (len(x), 3):
+        raise ValueError(f"model points must have shape ({len(x)}, 3), got {X.shape}")
+    if w_geom.shape != (len(x),):
+        raise ValueError(f"geometry weights must have shape ({len(x)},), got {w_geom.shape}")
+
+
+def _valid_pose(tvec: np.ndarray) -> bool:
+    t = np.asarray(tvec).reshape(3)
+    return bool(np.all(np.isfinite(t)) and t[2] > 0)
+
+
+def solve_pose(
+    x: np.ndarray,
+    X: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray | None = None,
+    w_geom: np.ndarray | None = None,
+    conf: GncConfig = GncConfig(),
+    seed: int = 0,
+) -> PnpResult:
+    """Estimate model->camera from 2D-3D pairs: RANSAC-PnP, then (if enabled) GNC-PnP, then LM.
+
+    Args:
+        x: (N, 2) image points, pixels. X: (N, 3) model points, metres. K: (3, 3).
+        dist: OpenCV distortion coefficients (None or empty: none).
+        w_geom: (N,) geometry-aware weights in [0, 1] (None: all 1).
+        conf: thresholds and schedule; defaults are SPEC §4.
+        seed: seeds OpenCV's RNG so RANSAC is reproducible.
+
+    Returns:
+        A :class:`PnpResult`; failures are results with a status, never exceptions.
+    """
+    x = np.ascontiguousarray(x, np.float64)
+    X = np.ascontiguousarray(X, np.float64)
+    n = len(x)
+    w_geom = np.ones(n) if w_geom is None else np.asarray(w_geom, np.float64)
+    _check(x, X, w_geom)
+    K = np.asarray(K, np.float64)
+    dist = np.zeros(0) if dist is None else np.asarray(dist, np.float64)
+    timings = {"ransac": 0.0, "gnc": 0.0, "lm": 0.0}
+    if n < max(conf.min_inliers, 4):
+        return PnpResult("too_few_matches", f"{n} correspondences, need {max(conf.min_inliers, 4)}",
+                         timings=timings)
+
+    t0 = time.perf_counter()
+    cv2.setRNGSeed(seed)
+    try:
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            X, x, K, dist,
+            iterationsCount=conf.ransac_iterations,
+            reprojectionError=conf.ransac_reproj_px,
+            confidence=conf.ransac_confidence,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
+    except cv2.error as e:
+        ok, msg = False, str(e).splitlines()[-1]
+    else:
+        msg = "no consensus"
+    timings["ransac"] = time.perf_counter() - t0
+    if not ok or inl is None or len(inl) < conf.min_inliers or not _valid_pose(tvec):
+        n_inl = 0 if inl is None else len(inl)
+        return PnpResult("pnp_failed", f"RANSAC-PnP failed ({msg}; {n_inl} inliers of {n})", timings=timings)
+    inliers = np.zeros(n, bool)
+    inliers[inl.reshape(-1)] = True
+    # Polish the RANSAC pose on its inliers (EPnP in RANSAC is coarse).
+    rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, dist, rvec, tvec)
+    r = reprojection_errors(X, x, rvec, tvec, K, dist)
+    inliers = r < conf.ransac_reproj_px
+    iterations = 0
+
+    if conf.enabled:
+        t0 = time.perf_counter()
+        rr = r**2 if conf.residual == "squared" else r
+        base = rr if conf.mu0_from == "all" else rr[inliers]
+        mu = conf.kappa * float(np.median(base)) + conf.epsilon
+        prev: np.ndarray | None = None
+        gnc_inliers = inliers
+        while iterations < conf.max_iterations:
+            w_gnc = mu**2 / (rr**2 + mu**2)
+            sel = (w_gnc > conf.tau_gnc) & (w_geom > conf.tau_geom)
+            if sel.sum() < conf.min_inliers:
+                break
+            if prev is not None and np.array_equal(sel, prev):
+                break
+            ok, rv, tv = cv2.solvePnP(
+                X[sel], x[sel], K, dist, rvec.copy(), tvec.copy(),
+                useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
+            )
+            iterations += 1
+            if not ok or not _valid_pose(tv):
+                break
+            rvec, tvec, gnc_inliers, prev = rv, tv, sel, sel
+            r = reprojection_errors(X, x, rvec, tvec, K, dist)
+            rr = r**2 if conf.residual == "squared" else r
+            if mu <= conf.mu_final_px:
+                break
+            mu = max(conf.gamma * mu, conf.mu_final_px)
+        inliers = gnc_inliers
+        timings["gnc"] = time.perf_counter() - t0
+
+    if conf.final_lm and inliers.sum() >= 4:
+        t0 = time.perf_counter()
+        rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, dist, rvec, tvec)
+        timings["lm"] = time.perf_counter() - t0
+    if not _valid_pose(tvec):
+        return PnpResult("pnp_failed", "pose behind the camera after refinement", timings=timings)
+    r = reprojection_errors(X, x, rvec, tvec, K, dist)
+    return PnpResult(
+        "ok", "", to_matrix(rvec, tvec), inliers, r, timings, iterations
+    )

@@ -1,0 +1,139 @@
+"""Load a textured mesh (OBJ+MTL+texture, PLY with texture or vertex colours) in metres."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.spatial import ConvexHull
+from scipy.spatial.distance import pdist
+
+from batchpose.config import MeshConfig
+from batchpose.errors import MeshError
+
+log = logging.getLogger("batchpose")
+
+_REF_RE = re.compile(rb"^\s*(?:mtllib|map_Kd|map_Ka)\s+(.+?)\s*$", re.MULTILINE)
+
+
+@dataclass(frozen=True)
+class ObjectModel:
+    """A textured object mesh in metres.
+
+    Attributes:
+        name: object name ("003_cracker_box").
+        path: the mesh file.
+        mesh: trimesh mesh, vertices in metres, texture or vertex colours attached.
+        diameter_m: largest distance between two vertices, metres.
+        content_hash: sha256 over the mesh file and the material/texture files it references.
+        scale: factor applied to the file's coordinates (1.0, or 0.001 for a converted mm mesh).
+    """
+
+    name: str
+    path: Path
+    mesh: trimesh.Trimesh
+    diameter_m: float
+    content_hash: str
+    scale: float = 1.0
+
+    @property
+    def center_m(self) -> np.ndarray:
+        """(3,) centre of the axis-aligned bounding box, model frame, metres."""
+        return self.mesh.bounds.mean(axis=0)
+
+
+def _referenced_files(path: Path) -> list[Path]:
+    """The mesh file plus the MTL and texture files it references (for content hashing)."""
+    out, todo, seen = [], [path], set()
+    while todo:
+        p = todo.pop()
+        if p in seen or not p.is_file():
+            continue
+        seen.add(p)
+        out.append(p)
+        if p.suffix.lower() in (".obj", ".mtl"):
+            for m in _REF_RE.finditer(p.read_bytes()):
+                todo.append(p.parent / m.group(1).decode(errors="replace"))
+    return sorted(out)
+
+
+def content_hash(path: Path) -> str:
+    h = hashlib.sha256()
+    for p in _referenced_files(path):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def diameter(vertices: np.ndarray) -> float:
+    """Largest pairwise distance between points (N, 3) -> float, via the convex hull."""
+    pts = np.asarray(vertices, dtype=np.float64)
+    if len(pts) > 4:
+        try:
+            pts = pts[ConvexHull(pts).vertices]
+        except Exception:  # degenerate (flat) point set: fall back to all points
+            pass
+    return float(pdist(pts).max()) if len(pts) > 1 else 0.0
+
+
+def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = None) -> ObjectModel:
+    """Load a textured mesh and bring it to metres.
+
+    Raises:
+        MeshError: missing or unreadable file, no faces, no texture/vertex colours, or a millimetre mesh
+            with ``on_millimetres: refuse``.
+    """
+    path = Path(path)
+    name = name or path.parent.name or path.stem
+    if not path.is_file():
+        raise MeshError(f"{path}: mesh file not found")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many types for corrupt files
+        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
+        raise MeshError(f"{path}: cannot read mesh ({msg})") from None
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
+        raise MeshError(f"{path}: mesh has no faces")
+    kind = loaded.visual.kind if loaded.visual is not None else None
+    has_texture = (
+        kind == "texture"
+        and getattr(loaded.visual, "uv", None) is not None
+        and getattr(loaded.visual.material, "image", None) is not None
+    ) or (kind == "texture" and getattr(loaded.visual.material, "baseColorTexture", None) is not None)
+    if kind == "vertex":
+        cols = np.asarray(loaded.visual.vertex_colors)[:, :3]
+        has_texture = cols.size > 0 and float(cols.std()) > 0.0
+    if not has_texture:
+        raise MeshError(
+            f"{path}: mesh has no texture or vertex colours (SIFT needs a textured mesh; "
+            "check that the .mtl and texture image sit beside the .obj)"
+        )
+    scale = 1.0
+    diag = float(np.linalg.norm(loaded.bounds[1] - loaded.bounds[0]))
+    units = conf.units
+    if units == "auto" and diag > conf.mm_diagonal_threshold:
+        if conf.on_millimetres == "refuse":
+            raise MeshError(
+                f"{path}: bounding-box diagonal is {diag:.1f} units, so the mesh looks like millimetres; "
+                "convert it to metres or set mesh.on_millimetres: convert"
+            )
+        log.warning("%s: bounding-box diagonal %.1f looks like millimetres; scaling by 0.001", path, diag)
+        units = "mm"
+    if units == "mm":
+        scale = 0.001
+        loaded.apply_scale(scale)
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise MeshError(f"{path}: mesh has NaN or infinite vertex coordinates")
+    return ObjectModel(
+        name=name,
+        path=path,
+        mesh=loaded,
+        diameter_m=diameter(loaded.vertices),
+        content_hash=content_hash(path),
+        scale=scale,
+    )

@@ -1,0 +1,130 @@
+"""Headless RGB + metric depth rendering with pyrender. The only module that imports the renderer.
+
+Backend: ``PYOPENGL_PLATFORM`` if set, else OSMesa (samples exactly at pixel centres, and is faster than
+EGL on llvmpipe). OSMesa leaks 1-3 MB per render, so the GL context is recreated every
+``RECREATE_EVERY`` renders.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+
+import numpy as np
+
+from batchpose.errors import RenderError
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+if not hasattr(np, "infty"):  # pyrender 0.1.45 uses np.infty, removed in numpy 2
+    np.infty = np.inf  # type: ignore[attr-defined]
+
+_GL_PACKAGES = {
+    "osmesa": "libosmesa6",
+    "egl": "libegl1 libegl-mesa0 libgl1-mesa-dri",
+}
+RECREATE_EVERY = 300
+
+# OpenCV camera (x right, y down, z forward) -> OpenGL camera (y up, z backward).
+_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def _import_pyrender():
+    platform = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
+    try:
+        import pyrender  # noqa: PLC0415
+
+        return pyrender
+    except Exception as e:  # ImportError, OSError, AttributeError from PyOpenGL's platform loader
+        pkg = _GL_PACKAGES.get(platform, "libosmesa6 or libegl1 libegl-mesa0 libgl1-mesa-dri")
+        raise RenderError(
+            f"headless rendering through PYOPENGL_PLATFORM={platform} is unavailable ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else ''}); install the Debian package(s) {pkg} "
+            "(make setup does) or set PYOPENGL_PLATFORM=egl/osmesa"
+        ) from None
+
+
+class Renderer:
+    """Renders one mesh at a time; keeps one GL context per process and per image size."""
+
+    def __init__(self) -> None:
+        self._pr = _import_pyrender()
+        self._renderer = None
+        self._size: tuple[int, int] | None = None
+        self._count = 0
+        self._meshes: dict[str, object] = {}
+        self._lock = threading.Lock()
+
+    def _context(self, width: int, height: int):
+        recreate = self._count >= RECREATE_EVERY and os.environ.get("PYOPENGL_PLATFORM") == "osmesa"
+        if self._renderer is None or self._size != (width, height) or recreate:
+            if self._renderer is not None:
+                self._renderer.delete()
+            try:
+                self._renderer = self._pr.OffscreenRenderer(width, height)
+            except Exception as e:
+                platform = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
+                raise RenderError(
+                    f"cannot create an offscreen GL context via {platform} ({e}); install "
+                    f"{_GL_PACKAGES.get(platform, 'libosmesa6')}"
+                ) from None
+            self._size = (width, height)
+            self._count = 0
+            self._meshes.clear()  # GL buffers belonged to the old context
+        return self._renderer
+
+    def render(
+        self,
+        key: str,
+        mesh,
+        cam_from_model: np.ndarray,
+        K: np.ndarray,
+        width: int,
+        height: int,
+        shading: str = "flat",
+        znear_m: float = 0.01,
+        zfar_m: float = 20.0,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Render a trimesh mesh.
+
+        Args:
+            key: cache key for the uploaded mesh (e.g. the mesh content hash).
+            mesh: trimesh.Trimesh in metres.
+            cam_from_model: (4, 4) model->camera (OpenCV camera axes), metres.
+            K: (3, 3) OpenCV intrinsics (pixel centres at integers).
+            width, height: image size in pixels.
+            shading: "flat" (albedo) or "lit" (headlight + ambient).
+
+        Returns:
+            rgb (H, W, 3) uint8 and depth_m (H, W) float32 z-depth in metres, 0 where there is no surface.
+        """
+        pr = self._pr
+        with self._lock:
+            r = self._context(width, height)
+            if key not in self._meshes:
+                self._meshes[key] = pr.Mesh.from_trimesh(mesh, smooth=False)
+            ambient = [1.0, 1.0, 1.0] if shading == "flat" else [0.35, 0.35, 0.35]
+            scene = pr.Scene(ambient_light=ambient, bg_color=[0.0, 0.0, 0.0, 0.0])
+            scene.add(self._meshes[key])
+            # pyrender's principal point counts from pixel edges, OpenCV's from pixel centres.
+            cam = pr.IntrinsicsCamera(
+                K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=znear_m, zfar=zfar_m
+            )
+            model_from_cam_gl = np.linalg.inv(cam_from_model) @ _CV_TO_GL
+            scene.add(cam, pose=model_from_cam_gl)
+            flags = pr.RenderFlags.FLAT if shading == "flat" else pr.RenderFlags.NONE
+            if shading == "lit":
+                scene.add(pr.DirectionalLight(color=np.ones(3), intensity=2.5), pose=model_from_cam_gl)
+            color, depth = r.render(scene, flags=flags)
+            self._count += 1
+        return np.ascontiguousarray(color[:, :, :3]), depth.astype(np.float32)
+
+
+_RENDERER: Renderer | None = None
+
+
+def get_renderer() -> Renderer:
+    """The process's renderer (one GL context per worker process, created on first use)."""
+    global _RENDERER
+    if _RENDERER is None:
+        _RENDERER = Renderer()
+    return _RENDERER

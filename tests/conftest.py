@@ -1,0 +1,39 @@
+"""Shared fixtures: bundled data paths and a session-wide template cache."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / "demo_data"
+SHARED_DATA = ROOT.parent / "shared" / "data"
+CRACKER = DEMO / "models" / "003_cracker_box" / "textured.obj"
+GELATIN = DEMO / "models" / "009_gelatin_box" / "textured.obj"
+
+# A canonical 640x480 camera for synthetic tests.
+K_SYN = np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]])
+
+
+@pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def cracker_model():
+    from batchpose.mesh import load_mesh
+
+    return load_mesh(CRACKER)
+
+
+@pytest.fixture(scope="session")
+def cracker_library(cracker_model, cache_dir):
+    """Template library of the bundled cracker box for K_SYN, built once per test session."""
+    from batchpose import build_templates
+    from batchpose.config import EstimatorConfig
+
+    lib_dir = build_templates.main(cracker_model, EstimatorConfig(), K_SYN, 640, 480, cache_dir)
+    return build_templates.load(lib_dir)
