@@ -113,7 +113,7 @@ def main(
     n_views = conf.render.n_views * max(len(conf.render.distances_m or conf.render.image_fractions), 1)
     if conf.render.view_preset == "paper":
         n_views = int(round(360 / conf.render.paper_azimuth_step_deg))
-    with tqdm(total=n_views, desc=f"templates {model.name}", unit="view", leave=False) as bar:
+    with tqdm(total=n_views, desc=f"templates {model.name}", unit="view", leave=False, disable=None) as bar:
         lib = render_templates(model, K_t, w, h, conf.render, conf.features, renderer, key, bar.update)
     if overwrite and out.exists():
         shutil.rmtree(out)
