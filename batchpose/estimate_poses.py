@@ -145,12 +145,10 @@ def main(
         joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids)
         for f, t in _chunks(source, objects, targets_mode, done, chunk_size, limit)
     )
-    parallel = joblib.Parallel(
-        n_jobs=jobs, backend=backend, return_as="generator", pre_dispatch="2*n_jobs"
-    )
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)
     try:
-        with joblib.parallel_config(backend=backend):
+        with joblib.parallel_config(backend=backend, n_jobs=jobs if backend == "loky" else -1):
+            parallel = joblib.Parallel(return_as="generator", pre_dispatch="2*n_jobs")
             for rows in parallel(tasks):
                 if rows:
                     shard = shard_dir / f"shard-{n_shards:06d}.parquet"
