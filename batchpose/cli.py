@@ -53,6 +53,19 @@ def _cmd_compare(args: argparse.Namespace) -> None:
     print(f"compare: {out}")
 
 
+def _cmd_score(args: argparse.Namespace) -> None:
+    from batchpose import bop, make_report
+
+    run = make_report.load_run(Path(args.run_dir))
+    if run.gt is None or run.gt.empty:
+        raise BatchposeError(f"{args.run_dir}: the run has no ground truth (gt.parquet) to score against")
+    points, diameters = make_report.load_model_points(run.objects, sorted(run.objects))
+    obj_names = {int(v["obj_id"]): k for k, v in run.objects.items()}
+    _, summary = bop.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames)
+    cols = [c for c in ("obj_name", "n", "adds_auc", "add_auc", "adds_recall", "add_recall") if c in summary]
+    print(summary[cols].to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="batchpose",
@@ -106,6 +119,15 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("run_dirs", nargs="+", help="run directories")
     cmp_.add_argument("--out", required=True, help="output directory for the comparison page")
     cmp_.set_defaults(func=_cmd_compare)
+    sc = sub.add_parser(
+        "score",
+        help="score any BOP-format results CSV against a run's ground truth",
+        description="Score a BOP results file (scene_id,im_id,obj_id,score,R,t,time; t in mm) against the "
+        "ground truth, frames and model points of a run directory: ADD(-S) AUC and 0.1 d recall per object.",
+    )
+    sc.add_argument("csv", help="BOP-format results CSV")
+    sc.add_argument("run_dir", help="run directory whose gt.parquet, frames.parquet and objects.json to use")
+    sc.set_defaults(func=_cmd_score)
     return p
 
 

@@ -111,3 +111,11 @@ def test_help_lists_every_command():
     r = _cli("run", "--help")
     for opt in ("--manifest", "--out", "--cache", "--set", "--jobs", "--backend", "--scheduler", "--overwrite"):
         assert opt in r.stdout
+
+
+@pytest.mark.slow
+def test_score_command_scores_a_bop_csv(demo_run):
+    r = _cli("score", str(demo_run / "poses.csv"), str(demo_run))
+    assert r.returncode == 0, r.stderr
+    pooled = [ln for ln in r.stdout.splitlines() if ln.strip().startswith("pooled")][0].split()
+    assert pooled[1] == "5" and float(pooled[2]) > 80  # n, ADD-S AUC

@@ -1,0 +1,521 @@
+"""Folder data set readers (YCB-Video, BOP, plain images) and the ``frames:`` manifest factory.
+
+Every reader yields :class:`~batchpose.frames.Frame` lazily, one file read per frame: listing the
+frames (``count()``) touches only directory entries and small index files, never image pixels.
+Images stay encoded (PNG/JPEG bytes as stored on disk).
+
+Layouts:
+    ``ycbv``: ``ROOT/classes.txt`` (one object name per line, obj_id = 1-based line),
+    ``ROOT/data/<video>/<frame>-color.png`` + ``-meta.mat`` and ``ROOT/data_syn/<frame>-color.png`` +
+    ``-meta.mat`` (scene_id 10000). ``meta.mat``: ``cls_indexes`` (1-based into classes.txt),
+    ``poses`` (3, 4, N) model->camera in metres, ``intrinsic_matrix`` (3, 3).
+    ``bop``: ``ROOT/<scene>/scene_camera.json`` (``cam_K``: 9 floats, row-major, per im_id),
+    optional ``scene_gt.json`` (``cam_R_m2c`` row-major, ``cam_t_m2c`` in mm, ``obj_id``) and
+    ``rgb/<im_id:06d>.png|jpg``.
+    ``images``: a folder of ``.png`` / ``.jpg`` files plus an intrinsics YAML with ``fx, fy, cx, cy,
+    width, height`` and optional ``dist`` (OpenCV order) and ``distortion_model``.
+    ``mcap``: see :mod:`batchpose.mcap_io`.
+
+Folder data sets carry no capture times, so ``stamp_ns`` is synthetic: ``index * 33_333_333`` (30 Hz
+from 0), in listing order.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import struct
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.io
+import yaml
+from scipy.io.matlab import MatReadError
+
+from batchpose.errors import ConfigError, DataError
+from batchpose.frames import Camera, Frame, ObjectPose
+
+log = logging.getLogger("batchpose")
+
+#: Synthetic frame period for data sets without capture times (30 Hz), in nanoseconds.
+FRAME_PERIOD_NS = 33_333_333
+#: scene_id of YCB-Video's synthetic frames (``data_syn/``), as in the BOP conversion.
+YCBV_SYN_SCENE_ID = 10000
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+#: Keys allowed in a manifest's ``frames:`` mapping, per format (first tuple: required).
+SPEC_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "ycbv": (("format", "root"), ()),
+    "bop": (("format", "root"), ("obj_names",)),
+    "images": (("format", "root"), ("intrinsics",)),
+    "mcap": (("format", "path"), ("image_topic", "calibration_topic")),
+}
+INTRINSICS_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+
+
+class FrameSource(ABC):
+    """A lazily read sequence of frames. Iterate it to get :class:`Frame` objects in a fixed order."""
+
+    @abstractmethod
+    def __iter__(self) -> Iterator[Frame]:
+        """Yield the frames one by one, reading each from disk only when it is reached."""
+
+    @abstractmethod
+    def count(self) -> int:
+        """Number of frames, without decoding any image."""
+
+    def obj_id(self, name: str) -> int:
+        """Data set object id of ``name`` (YCB-Video: 1-based line of classes.txt; BOP: obj_id); 0 if unknown."""
+        return 0
+
+    @abstractmethod
+    def describe(self) -> str:
+        """One line saying what this source reads, e.g. "ycbv /data/ycbv_dev (21 frames)"."""
+
+    def __len__(self) -> int:
+        return self.count()
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """Width and height from a PNG or JPEG header, without decoding pixels.
+
+    Args:
+        data: encoded image bytes.
+
+    Returns:
+        (width, height) in pixels, or None when the bytes are not a PNG/JPEG header we can read.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    if data[:2] != b"\xff\xd8":
+        return None
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xDA)):  # standalone markers carry no length
+            i += 2
+            continue
+        (seg_len,) = struct.unpack(">H", data[i + 2 : i + 4])
+        # SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC) hold the frame size.
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 9 > n:
+                return None
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            return int(w), int(h)
+        i += 2 + seg_len
+    return None
+
+
+def image_format_of(path: Path) -> str:
+    """``"png"`` or ``"jpeg"`` from a file suffix."""
+    return "png" if path.suffix.lower() == ".png" else "jpeg"
+
+
+def one_line(e: BaseException) -> str:
+    """An exception's text on one line (YAML and MATLAB errors span several)."""
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as e:
+        raise DataError(f"{path}: cannot read image ({e.strerror or e})") from None
+
+
+def _camera_from_image(K: np.ndarray, data: bytes, path: Path) -> Camera:
+    """Camera with the image's own size (0x0 when the header is unreadable: decode_image then reports it)."""
+    size = image_size(data)
+    if size is None and data:
+        log.debug("%s: cannot read the image size from its header", path)
+    w, h = size if size is not None else (0, 0)
+    return Camera(K=np.asarray(K, dtype=np.float64).reshape(3, 3), width=w, height=h)
+
+
+def _require_dir(path: Path, what: str) -> Path:
+    if not path.exists():
+        raise DataError(f"{what}: {path} does not exist")
+    if not path.is_dir():
+        raise DataError(f"{what}: {path} is not a folder")
+    return path
+
+
+# --------------------------------------------------------------------------------------------- YCB-Video
+
+
+class YcbvFrameSource(FrameSource):
+    """YCB-Video folder layout (``data/<video>/`` and ``data_syn/``); see the module docstring.
+
+    Args:
+        root: data set folder holding ``classes.txt`` and ``data/`` and/or ``data_syn/``.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = _require_dir(Path(root), "ycbv root")
+        classes = self.root / "classes.txt"
+        if not classes.is_file():
+            raise DataError(f"{classes}: missing (YCB-Video needs classes.txt, one object name per line)")
+        self.classes = [ln.strip() for ln in classes.read_text().splitlines() if ln.strip()]
+        if not self.classes:
+            raise DataError(f"{classes}: empty (expected one object name per line)")
+        #: (color path, scene_id, im_id, frame_id) per frame, in reading order.
+        self._items: list[tuple[Path, int, int, str]] = []
+        data = self.root / "data"
+        if data.is_dir():
+            for video in sorted(p for p in data.iterdir() if p.is_dir()):
+                if not video.name.isdigit():
+                    log.debug("%s: skipping non-numeric video folder", video)
+                    continue
+                for color in sorted(video.glob("*-color.png")):
+                    im = color.name[: -len("-color.png")]
+                    if im.isdigit():
+                        self._items.append((color, int(video.name), int(im), f"{video.name}/{im}"))
+        syn = self.root / "data_syn"
+        if syn.is_dir():
+            for color in sorted(syn.glob("*-color.png")):
+                im = color.name[: -len("-color.png")]
+                if im.isdigit():
+                    self._items.append((color, YCBV_SYN_SCENE_ID, int(im), f"data_syn/{im}"))
+        if not self._items:
+            raise DataError(
+                f"{self.root}: no YCB-Video frames (expected data/<video>/<frame>-color.png "
+                "or data_syn/<frame>-color.png)"
+            )
+        for color, *_ in self._items:
+            meta = self._meta_path(color)
+            if not meta.is_file():
+                raise DataError(f"{meta}: missing (every -color.png needs its -meta.mat)")
+
+    @staticmethod
+    def _meta_path(color: Path) -> Path:
+        return color.with_name(color.name.replace("-color.png", "-meta.mat"))
+
+    def _read_meta(self, meta: Path) -> tuple[np.ndarray, tuple[ObjectPose, ...]]:
+        try:
+            # meta.mat also holds a 480x640x3 vertmap; load only what we need.
+            m = scipy.io.loadmat(str(meta), variable_names=["cls_indexes", "poses", "intrinsic_matrix"])
+        except (OSError, ValueError, TypeError, MatReadError) as e:
+            raise DataError(f"{meta}: cannot read MATLAB file ({one_line(e)})") from None
+        for key in ("cls_indexes", "poses", "intrinsic_matrix"):
+            if key not in m:
+                raise DataError(f"{meta}: missing variable {key!r}")
+        K = np.asarray(m["intrinsic_matrix"], dtype=np.float64)
+        if K.shape != (3, 3):
+            raise DataError(f"{meta}: intrinsic_matrix must be 3x3, got shape {K.shape}")
+        cls = np.asarray(m["cls_indexes"]).reshape(-1).astype(int)
+        poses = np.asarray(m["poses"], dtype=np.float64)
+        if poses.ndim == 2:  # MATLAB drops the trailing singleton dimension of one object
+            poses = poses[:, :, None]
+        if poses.shape[:2] != (3, 4) or poses.shape[2] != cls.size:
+            raise DataError(
+                f"{meta}: poses must be 3x4x{cls.size} (one per cls_indexes entry), got shape {poses.shape}"
+            )
+        gt = []
+        for i, c in enumerate(cls):
+            if not 1 <= c <= len(self.classes):
+                raise DataError(f"{meta}: cls_indexes value {c} outside 1..{len(self.classes)} (classes.txt)")
+            T = np.eye(4)
+            T[:3, :] = poses[:, :, i]
+            gt.append(ObjectPose(obj_name=self.classes[c - 1], cam_from_model=T))
+        return K, tuple(gt)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for index, (color, scene_id, im_id, frame_id) in enumerate(self._items):
+            K, gt = self._read_meta(self._meta_path(color))
+            data = _read_bytes(color)
+            yield Frame(
+                frame_id=frame_id,
+                scene_id=scene_id,
+                im_id=im_id,
+                stamp_ns=index * FRAME_PERIOD_NS,
+                camera=_camera_from_image(K, data, color),
+                image_format="png",
+                image_data=data,
+                gt=gt,
+                source=str(color),
+            )
+
+    def count(self) -> int:
+        return len(self._items)
+
+    def obj_id(self, name: str) -> int:
+        return self.classes.index(name) + 1 if name in self.classes else 0
+
+    def describe(self) -> str:
+        return f"ycbv {self.root} ({self.count()} frames)"
+
+
+# --------------------------------------------------------------------------------------------------- BOP
+
+
+def _load_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except OSError as e:
+        raise DataError(f"{path}: cannot read ({e.strerror or e})") from None
+    except json.JSONDecodeError as e:
+        raise DataError(f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from None
+
+
+class BopFrameSource(FrameSource):
+    """BOP folder layout: ``ROOT/<scene>/{scene_camera.json, scene_gt.json, rgb/}`` (or ROOT is one scene).
+
+    Args:
+        root: split folder (e.g. ``ycbv/test``) or a single scene folder.
+        obj_names: BOP obj_id -> object name; ids not listed are named ``obj_000001`` style.
+    """
+
+    def __init__(self, root: Path, obj_names: Mapping[Any, str] | None = None) -> None:
+        self.root = _require_dir(Path(root), "bop root")
+        self.obj_names: dict[int, str] = {}
+        for k, v in (obj_names or {}).items():
+            try:
+                self.obj_names[int(k)] = str(v)
+            except (TypeError, ValueError):
+                raise ConfigError(f"frames.obj_names: key {k!r} is not an integer BOP obj_id") from None
+        self._ids_by_name = {v: k for k, v in self.obj_names.items()}
+        if (self.root / "scene_camera.json").is_file():
+            scenes = [self.root]
+        else:
+            scenes = sorted(p for p in self.root.iterdir() if p.is_dir() and (p / "scene_camera.json").is_file())
+        if not scenes:
+            raise DataError(f"{self.root}: no BOP scenes (expected <scene>/scene_camera.json)")
+        #: (scene folder, scene_id, im_id, image path, cam_K) per frame, in reading order.
+        self._items: list[tuple[Path, int, int, Path, np.ndarray]] = []
+        for scene in scenes:
+            scene_id = int(scene.name) if scene.name.isdigit() else 0
+            cams_path = scene / "scene_camera.json"
+            cams = _load_json(cams_path)
+            if not isinstance(cams, dict):
+                raise DataError(f"{cams_path}: expected a mapping im_id -> camera")
+            rgb = scene / "rgb"
+            if not rgb.is_dir():
+                raise DataError(f"{rgb}: missing (BOP images are rgb/<im_id:06d>.png|jpg)")
+            files = {p.stem: p for p in rgb.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES}
+            for key in sorted(cams, key=lambda k: int(k) if str(k).isdigit() else -1):
+                if not str(key).isdigit():
+                    raise DataError(f"{cams_path}: key {key!r} is not an integer im_id")
+                im_id = int(key)
+                cam_K = cams[key].get("cam_K") if isinstance(cams[key], dict) else None
+                if cam_K is None or len(cam_K) != 9:
+                    raise DataError(f"{cams_path}: im_id {im_id}: cam_K must be 9 numbers (row-major 3x3)")
+                image = files.get(f"{im_id:06d}")
+                if image is None:
+                    raise DataError(f"{rgb / f'{im_id:06d}.png'}: missing (listed in {cams_path.name})")
+                K = np.asarray(cam_K, dtype=np.float64).reshape(3, 3)
+                self._items.append((scene, scene_id, im_id, image, K))
+        if not self._items:
+            raise DataError(f"{self.root}: scene_camera.json lists no images")
+
+    def obj_name(self, obj_id: int) -> str:
+        """Object name of a BOP obj_id (``obj_names`` or ``obj_000001`` style)."""
+        return self.obj_names.get(obj_id, f"obj_{obj_id:06d}")
+
+    def _scene_gt(self, scene: Path) -> dict[int, tuple[ObjectPose, ...]]:
+        path = scene / "scene_gt.json"
+        if not path.is_file():
+            return {}
+        raw = _load_json(path)
+        out: dict[int, tuple[ObjectPose, ...]] = {}
+        for key, objs in raw.items():
+            poses = []
+            for j, o in enumerate(objs):
+                try:
+                    R = np.asarray(o["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
+                    t_mm = np.asarray(o["cam_t_m2c"], dtype=np.float64).reshape(3)
+                    obj_id = int(o["obj_id"])
+                except (KeyError, TypeError, ValueError) as e:
+                    raise DataError(
+                        f"{path}: im_id {key} object {j}: expected obj_id, cam_R_m2c (9 numbers) and "
+                        f"cam_t_m2c (3 numbers, mm) ({one_line(e)})"
+                    ) from None
+                T = np.eye(4)
+                T[:3, :3] = R
+                T[:3, 3] = t_mm / 1000.0
+                poses.append(ObjectPose(obj_name=self.obj_name(obj_id), cam_from_model=T))
+            out[int(key)] = tuple(poses)
+        return out
+
+    def __iter__(self) -> Iterator[Frame]:
+        gt_scene: Path | None = None
+        gt: dict[int, tuple[ObjectPose, ...]] = {}
+        for index, (scene, scene_id, im_id, image, K) in enumerate(self._items):
+            if scene != gt_scene:  # one scene's ground truth in memory at a time
+                gt, gt_scene = self._scene_gt(scene), scene
+            data = _read_bytes(image)
+            yield Frame(
+                frame_id=f"{scene_id:06d}/{im_id:06d}",
+                scene_id=scene_id,
+                im_id=im_id,
+                stamp_ns=index * FRAME_PERIOD_NS,
+                camera=_camera_from_image(K, data, image),
+                image_format=image_format_of(image),
+                image_data=data,
+                gt=gt.get(im_id, ()),
+                source=str(image),
+            )
+
+    def count(self) -> int:
+        return len(self._items)
+
+    def obj_id(self, name: str) -> int:
+        if name in self._ids_by_name:
+            return self._ids_by_name[name]
+        if name.startswith("obj_") and name[4:].isdigit():
+            return int(name[4:])
+        return 0
+
+    def describe(self) -> str:
+        return f"bop {self.root} ({self.count()} frames)"
+
+
+# ------------------------------------------------------------------------------------------ plain images
+
+
+def load_intrinsics(path: Path) -> Camera:
+    """Read an intrinsics YAML (``fx, fy, cx, cy, width, height``, optional ``dist``, ``distortion_model``).
+
+    Raises:
+        DataError: the file is missing or not YAML.
+        ConfigError: a key is missing, unknown or not a number.
+        CameraError: the values do not make a valid camera.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: intrinsics file does not exist (expected YAML with {', '.join(INTRINSICS_KEYS)})")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise DataError(f"{path}: invalid YAML ({one_line(e)})") from None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping with {', '.join(INTRINSICS_KEYS)}")
+    unknown = sorted(set(raw) - set(INTRINSICS_KEYS) - {"dist", "distortion_model"})
+    if unknown:
+        raise ConfigError(
+            f"{path}: unknown key {unknown[0]!r} (allowed: {', '.join(INTRINSICS_KEYS)}, dist, distortion_model)"
+        )
+    missing = [k for k in INTRINSICS_KEYS if k not in raw]
+    if missing:
+        raise ConfigError(f"{path}: missing key {missing[0]!r} (need {', '.join(INTRINSICS_KEYS)})")
+    try:
+        fx, fy, cx, cy = (float(raw[k]) for k in ("fx", "fy", "cx", "cy"))
+        width, height = int(raw["width"]), int(raw["height"])
+        dist = np.asarray(raw.get("dist") or [], dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{path}: intrinsics must be numbers (dist a list of numbers): {one_line(e)}") from None
+    model = str(raw.get("distortion_model") or ("plumb_bob" if dist.size else ""))
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    cam = Camera(K=K, width=width, height=height, dist=dist, distortion_model=model)
+    return cam.validate(where=str(path))
+
+
+class ImagesFrameSource(FrameSource):
+    """A folder of ``.png`` / ``.jpg`` images (sorted by name) sharing one intrinsics YAML.
+
+    Args:
+        root: image folder (not searched recursively).
+        intrinsics: intrinsics YAML; default ``root/intrinsics.yaml``.
+    """
+
+    def __init__(self, root: Path, intrinsics: Path | None = None) -> None:
+        self.root = _require_dir(Path(root), "images root")
+        self.intrinsics = Path(intrinsics) if intrinsics is not None else self.root / "intrinsics.yaml"
+        self.camera = load_intrinsics(self.intrinsics)
+        self._paths = sorted(p for p in self.root.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self._paths:
+            raise DataError(f"{self.root}: no .png/.jpg images")
+        self._warned_size = False
+
+    def __iter__(self) -> Iterator[Frame]:
+        for index, path in enumerate(self._paths):
+            data = _read_bytes(path)
+            size = image_size(data)
+            if size is not None and size != (self.camera.width, self.camera.height) and not self._warned_size:
+                log.warning(
+                    "%s: image is %dx%d but %s says %dx%d", path, *size, self.intrinsics,
+                    self.camera.width, self.camera.height,
+                )
+                self._warned_size = True
+            yield Frame(
+                frame_id=path.stem,
+                scene_id=0,
+                im_id=index,
+                stamp_ns=index * FRAME_PERIOD_NS,
+                camera=self.camera,
+                image_format=image_format_of(path),
+                image_data=data,
+                source=str(path),
+            )
+
+    def count(self) -> int:
+        return len(self._paths)
+
+    def describe(self) -> str:
+        return f"images {self.root} ({self.count()} frames, intrinsics {self.intrinsics})"
+
+
+# --------------------------------------------------------------------------------------------- factory
+
+
+def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
+    """Open the frame source described by a manifest's ``frames:`` mapping.
+
+    Args:
+        spec: ``{format: ycbv, root: PATH}``, ``{format: bop, root: PATH, obj_names: {1: name}}``,
+            ``{format: images, root: PATH, intrinsics: PATH}`` (intrinsics default ``ROOT/intrinsics.yaml``)
+            or ``{format: mcap, path: PATH, image_topic: TOPIC, calibration_topic: TOPIC}`` (topics
+            optional).
+        base_dir: folder that relative paths are resolved against (the manifest's folder).
+
+    Raises:
+        ConfigError: unknown format, missing or unknown key.
+        DataError: a path does not exist or the data set is malformed.
+    """
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"frames: expected a mapping with a 'format' key, got {type(spec).__name__}")
+    fmt = spec.get("format")
+    if fmt not in SPEC_KEYS:
+        raise ConfigError(f"frames.format: unknown format {fmt!r} (expected one of {', '.join(SPEC_KEYS)})")
+    required, optional = SPEC_KEYS[fmt]
+    unknown = sorted(set(spec) - set(required) - set(optional))
+    if unknown:
+        raise ConfigError(
+            f"frames.{unknown[0]}: unknown key for format {fmt} (allowed: {', '.join(required + optional)})"
+        )
+    missing = [k for k in required if spec.get(k) in (None, "")]
+    if missing:
+        raise ConfigError(f"frames.{missing[0]}: missing (format {fmt} needs {', '.join(required[1:])})")
+
+    def resolve(key: str) -> Path:
+        p = Path(str(spec[key])).expanduser()
+        p = p if p.is_absolute() else Path(base_dir) / p
+        if not p.exists():
+            raise DataError(f"frames.{key}: {p} does not exist")
+        return p
+
+    if fmt == "ycbv":
+        return YcbvFrameSource(resolve("root"))
+    if fmt == "bop":
+        names = spec.get("obj_names") or {}
+        if not isinstance(names, Mapping):
+            raise ConfigError("frames.obj_names: expected a mapping {obj_id: name}")
+        return BopFrameSource(resolve("root"), obj_names=names)
+    if fmt == "images":
+        return ImagesFrameSource(resolve("root"), resolve("intrinsics") if spec.get("intrinsics") else None)
+    from batchpose.mcap_io import McapFrameSource  # only mcap_io imports mcap
+
+    for key in ("image_topic", "calibration_topic"):
+        if spec.get(key) is not None and not isinstance(spec[key], str):
+            raise ConfigError(f"frames.{key}: expected a topic name string, got {spec[key]!r}")
+    return McapFrameSource(
+        resolve("path"), image_topic=spec.get("image_topic"), calibration_topic=spec.get("calibration_topic")
+    )

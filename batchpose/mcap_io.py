@@ -1,0 +1,1177 @@
+"""MCAP in and out: the only module that imports ``mcap`` (and its protobuf / ROS 2 support).
+
+Reading (:class:`McapFrameSource`): images from ``foxglove.CompressedImage`` (jpeg, png),
+``foxglove.RawImage`` (rgb8, bgr8, rgba8, bgra8, mono8, mono16), ``sensor_msgs/msg/Image`` and
+``sensor_msgs/msg/CompressedImage`` (ROS 2 cdr); calibration from ``foxglove.CameraCalibration`` or
+``sensor_msgs/msg/CameraInfo``. Each image uses the latest calibration logged at or before it (images
+logged before the first calibration use the first one, with a warning). Image bytes are never decoded
+here: ``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
+stride.
+
+Writing: :func:`write_frames_mcap` turns frames into a log; :func:`write_poses_mcap` copies every input
+message byte for byte and adds the estimates. Topics written by batchpose:
+
+================================  ==============================  ===========================================
+topic                             schema                          content
+================================  ==============================  ===========================================
+``/camera/image``                 foxglove.CompressedImage        PNG/JPEG bytes as stored (RawImage for raw)
+``/camera/calibration``           foxglove.CameraCalibration      K, R = I, P = [K | 0], D, model, size
+``/ground_truth/poses``           batchpose.GroundTruthPoses      JSON, see :data:`GT_JSON_SCHEMA`
+``/batchpose/scene``              foxglove.SceneUpdate            one message at the start: each object's
+                                                                  mesh (binary glTF) locked to
+                                                                  ``object/<name>``, lifetime forever
+``/batchpose/tf``                 foxglove.FrameTransform         camera frame -> ``object/<name>``, metres
+``/batchpose/poses/<name>``       foxglove.PosesInFrame           the object's pose in the camera frame
+``/batchpose/annotations``        foxglove.ImageAnnotations       projected 3D box, inlier points, labels
+``/batchpose/status``             batchpose.FrameStatus           JSON, see :data:`STATUS_JSON_SCHEMA`
+================================  ==============================  ===========================================
+
+All batchpose messages of one image are logged at the image's log time; in-message timestamps equal the
+image's own header stamp, so Foxglove's Image panel can match annotations to the image. Within one log
+time the calibration and ground truth are written before the image.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import os
+import struct
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _dist_version
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.Color_pb2 import Color
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+from foxglove_schemas_protobuf.ModelPrimitive_pb2 import ModelPrimitive
+from foxglove_schemas_protobuf.Point2_pb2 import Point2
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
+from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf.message import DecodeError
+from mcap.exceptions import EndOfFile, McapError
+from mcap.reader import SeekingReader
+from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import CRCValidationError, StreamReader
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
+from mcap_protobuf.schema import register_schema
+from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
+from scipy.spatial.transform import Rotation
+
+from batchpose.datasets import FrameSource, image_size, one_line
+from batchpose.errors import CameraError, ConfigError, DataError
+from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose
+from batchpose.poses import row_cam_from_model
+
+try:  # zstd is how chunks are usually compressed; its errors mean a corrupt chunk
+    from zstandard import ZstdError
+except ImportError:  # pragma: no cover - zstandard ships with mcap's recommended extras
+    ZstdError = McapError  # type: ignore[assignment,misc]
+
+log = logging.getLogger("batchpose")
+
+try:
+    __version__ = _dist_version("batchpose")
+except PackageNotFoundError:  # running from a source tree that is not installed
+    __version__ = "unknown"
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+IMAGE_TOPIC = "/camera/image"
+CALIBRATION_TOPIC = "/camera/calibration"
+GT_TOPIC = "/ground_truth/poses"
+CAMERA_FRAME_ID = "camera"
+OUTPUT_PREFIX = "/batchpose/"
+SCENE_TOPIC = "/batchpose/scene"
+TF_TOPIC = "/batchpose/tf"
+POSES_TOPIC_PREFIX = "/batchpose/poses/"
+ANNOTATIONS_TOPIC = "/batchpose/annotations"
+STATUS_TOPIC = "/batchpose/status"
+METADATA_NAME = "batchpose"
+
+#: Image schema name -> "compressed" | "raw".
+IMAGE_SCHEMAS = {
+    "foxglove.CompressedImage": "compressed",
+    "foxglove.RawImage": "raw",
+    "sensor_msgs/msg/CompressedImage": "compressed",
+    "sensor_msgs/msg/Image": "raw",
+    "sensor_msgs/CompressedImage": "compressed",
+    "sensor_msgs/Image": "raw",
+}
+CALIBRATION_SCHEMAS = ("foxglove.CameraCalibration", "sensor_msgs/msg/CameraInfo", "sensor_msgs/CameraInfo")
+
+GT_SCHEMA_NAME = "batchpose.GroundTruthPoses"
+#: ``/ground_truth/poses``: one JSON message per image, logged at the image's log time (before it).
+GT_JSON_SCHEMA = {
+    "title": GT_SCHEMA_NAME,
+    "description": "Ground-truth object poses of one image (model->camera, metres).",
+    "type": "object",
+    "properties": {
+        "stamp_ns": {"type": "integer", "description": "log time of the image, ns"},
+        "frame_id": {"type": "string", "description": "coordinate frame of the poses (the image's)"},
+        "source_frame_id": {"type": "string", "description": "frame id in the source data set"},
+        "scene_id": {"type": "integer", "description": "BOP scene id in the source data set"},
+        "im_id": {"type": "integer", "description": "BOP image id in the source data set"},
+        "objects": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "obj_name": {"type": "string"},
+                    "obj_id": {"type": "integer", "description": "data set object id, 0 if unknown"},
+                    "cam_from_model": {
+                        "type": "array",
+                        "items": {"type": "number"},
+                        "description": "4x4 rigid transform, row-major, 16 numbers, metres",
+                    },
+                },
+            },
+        },
+    },
+}
+STATUS_SCHEMA_NAME = "batchpose.FrameStatus"
+#: ``/batchpose/status``: one JSON message per image with the per-object outcome.
+STATUS_JSON_SCHEMA = {
+    "title": STATUS_SCHEMA_NAME,
+    "description": "batchpose estimate status of every target object in one image.",
+    "type": "object",
+    "properties": {
+        "frame_id": {"type": "string"},
+        "stamp_ns": {"type": "integer"},
+        "n_ok": {"type": "integer"},
+        "objects": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {
+                    "obj_name": {"type": "string"},
+                    "status": {"type": "string"},
+                    "reason": {"type": "string"},
+                    "confidence": {"type": "number"},
+                    "n_inliers": {"type": "integer"},
+                },
+            },
+        },
+    },
+}
+
+# Foxglove turns every glTF model from glTF's Y-up to its Z-up convention (a +90 deg rotation about x);
+# this model pose (-90 deg about x) cancels it so the mesh sits exactly in its model frame.
+_GLTF_UNDO_Y_UP = Quaternion(x=-np.sqrt(0.5), y=0.0, z=0.0, w=np.sqrt(0.5))
+_BOX_EDGES = np.array(
+    [[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]]
+)
+_PALETTE = [
+    (0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74),
+    (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.5, 0.5, 0.5), (0.74, 0.74, 0.13), (0.09, 0.75, 0.81),
+]
+#: Errors the mcap reader raises on bad bytes (CRCValidationError is a ValueError).
+_READ_ERRORS = (McapError, ValueError, struct.error, ZstdError, RuntimeError)
+
+
+# ----------------------------------------------------------------------------------------- decoding
+
+
+@dataclass(frozen=True)
+class _Calib:
+    """A decoded calibration message."""
+
+    K: np.ndarray
+    width: int
+    height: int
+    dist: np.ndarray
+    model: str
+
+
+@dataclass(frozen=True)
+class _Image:
+    """A decoded image message (bytes untouched)."""
+
+    fmt: str
+    data: bytes
+    width: int
+    height: int
+    step: int
+    frame_id: str
+    stamp_ns: int
+    raw: bool
+
+
+def _compressed_format(fmt: str) -> str:
+    """Normalise a CompressedImage format ("jpeg", "image/png", "bgr8; jpeg compressed bgr8")."""
+    f = fmt.lower().strip()
+    f = f.removeprefix("image/")
+    if "compresseddepth" in f:  # a 12-byte header before the PNG: not plain png
+        return f
+    if "jpeg" in f or "jpg" in f:
+        return "jpeg"
+    if "png" in f:
+        return "png"
+    return f
+
+
+def _stamp_ns(msg: Any) -> int:
+    if hasattr(msg, "header"):  # ROS 2: header.stamp.sec / nanosec
+        st = msg.header.stamp
+        return int(st.sec) * 1_000_000_000 + int(st.nanosec)
+    ts = msg.timestamp  # foxglove: google.protobuf.Timestamp
+    return int(ts.seconds) * 1_000_000_000 + int(ts.nanos)
+
+
+def _frame_id_of(msg: Any) -> str:
+    return str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id)
+
+
+def _field(msg: Any, *names: str) -> Any:
+    """First present attribute: foxglove uses K/D/P, ROS 2 k/d/p."""
+    for n in names:
+        if hasattr(msg, n):
+            return getattr(msg, n)
+    raise AttributeError(names[0])
+
+
+def _to_calib(msg: Any) -> _Calib:
+    K = np.asarray(list(_field(msg, "K", "k")), dtype=np.float64)
+    # A malformed K becomes NaN so that the frame fails as bad_camera instead of stopping the batch.
+    K = K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan)
+    dist = np.asarray(list(_field(msg, "D", "d")), dtype=np.float64).reshape(-1)
+    return _Calib(K=K, width=int(msg.width), height=int(msg.height), dist=dist, model=str(msg.distortion_model))
+
+
+def _to_image(msg: Any, kind: str) -> _Image:
+    data = bytes(msg.data)
+    if kind == "compressed":
+        fmt = _compressed_format(str(msg.format))
+        return _Image(fmt, data, 0, 0, 0, _frame_id_of(msg), _stamp_ns(msg), raw=False)
+    return _Image(
+        str(msg.encoding), data, int(msg.width), int(msg.height), int(msg.step), _frame_id_of(msg),
+        _stamp_ns(msg), raw=True,
+    )
+
+
+def _camera(cal: _Calib, img: _Image) -> Camera:
+    """Camera for one image: raw images carry their size; compressed ones take the calibration's."""
+    if img.raw:
+        w, h = img.width, img.height
+    elif cal.width and cal.height:
+        w, h = cal.width, cal.height
+    else:
+        w, h = image_size(img.data) or (0, 0)
+    return Camera(K=cal.K, width=w, height=h, dist=cal.dist, distortion_model=cal.model)
+
+
+def _gt_poses(obj: Mapping[str, Any]) -> tuple[ObjectPose, ...]:
+    poses = []
+    for o in obj.get("objects", []):
+        T = np.asarray(o["cam_from_model"], dtype=np.float64).reshape(4, 4)
+        poses.append(ObjectPose(obj_name=str(o["obj_name"]), cam_from_model=T))
+    return tuple(poses)
+
+
+# ------------------------------------------------------------------------------------------ reading
+
+
+class McapFrameSource(FrameSource):
+    """Frames of one image topic of an MCAP file, read lazily in log-time order.
+
+    Args:
+        path: the MCAP file.
+        image_topic: image topic to read; default: the first image topic (one with a calibration topic
+            beside it preferred), logged.
+        calibration_topic: calibration topic; default: the calibration topic beside the image topic
+            (same namespace: ``/cam/image`` <-> ``/cam/calibration`` or ``/cam/camera_info``).
+
+    Frames: ``frame_id`` "mcap:<log_time_ns>", ``scene_id`` 0, ``im_id`` running index, ``stamp_ns`` =
+    log time; when ``/ground_truth/poses`` holds a message at the image's log time (files written by
+    ``batchpose convert``), ``gt`` comes from it and ``scene_id`` / ``im_id`` are the source data set's.
+
+    A file without footer/summary (a recording cut short) is read in stream mode: the messages of all
+    complete chunks are used and a warning says what was lost.
+
+    Raises:
+        DataError: not an MCAP file, truncated with no complete image message, corrupt (CRC mismatch),
+            no image topic, or a chosen image topic whose schema is not an image type.
+        CameraError: no calibration topic for the image topic, or it has no messages.
+    """
+
+    def __init__(self, path: Path, image_topic: str | None = None, calibration_topic: str | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise DataError(f"{self.path}: MCAP file does not exist")
+        self._size = self.path.stat().st_size
+        with open(self.path, "rb") as f:
+            head = f.read(8)
+            f.seek(max(0, self._size - 8))
+            tail = f.read(8)
+        if head != MCAP_MAGIC:
+            raise DataError(
+                f"{self.path}: not an MCAP file (expected magic {MCAP_MAGIC!r} at the start, got {head!r})"
+            )
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._counts: dict[int, int] | None = None
+        self._metadata: dict[str, dict[str, str]] = {}
+        self.profile = ""
+        self.indexed = False
+        self.truncated = False
+        self._lost_bytes = 0
+        self._n_messages = 0
+        if tail == MCAP_MAGIC and self._size > 16 and self._read_summary():
+            self.indexed = True
+        else:
+            self.truncated = tail != MCAP_MAGIC
+            self._scan_stream()
+        self.image_topic = self._choose_image_topic(image_topic)
+        self.calibration_topic = self._choose_calibration_topic(calibration_topic)
+        self.gt_topic = GT_TOPIC if GT_TOPIC in self._topics() else None
+        self._decoders: dict[int, Any] = {}
+        self._factories = (ProtobufDecoderFactory(), Ros2DecoderFactory())
+        self._count: int | None = None
+        if self.truncated:
+            n_img = self._topic_count(self.image_topic)
+            log.warning(
+                "%s: truncated MCAP (no footer/summary): read %d messages (%d images on %s) from complete "
+                "chunks; the last %d bytes (an incomplete record) were lost, holding an unknown number of "
+                "messages",
+                self.path, self._n_messages, n_img, self.image_topic, self._lost_bytes,
+            )
+
+    # -- opening
+
+    def _read_summary(self) -> bool:
+        """Load schemas, channels and counts from the summary; False when there is no usable index."""
+        try:
+            with open(self.path, "rb") as f:
+                reader = SeekingReader(f, validate_crcs=True)
+                self.profile = reader.get_header().profile
+                summary = reader.get_summary()
+                if summary is None or not summary.chunk_indexes:
+                    return False
+                self._schemas = dict(summary.schemas)
+                self._channels = dict(summary.channels)
+                if summary.statistics is not None:
+                    self._counts = dict(summary.statistics.channel_message_counts)
+                    self._n_messages = summary.statistics.message_count
+                for m in reader.iter_metadata():
+                    self._metadata[m.name] = dict(m.metadata)
+        except _READ_ERRORS as e:
+            log.warning(
+                "%s: cannot read the MCAP summary (%s); reading the file sequentially", self.path, one_line(e)
+            )
+            return False
+        return True
+
+    def _scan_stream(self) -> None:
+        """Walk the file once without an index: channels, per-channel counts and where it breaks off."""
+        counts: dict[int, int] = defaultdict(int)
+        data_end = False
+        with open(self.path, "rb") as f:
+            last_ok = 0
+            try:
+                for rec in StreamReader(f, validate_crcs=True).records:
+                    if isinstance(rec, Message):
+                        counts[rec.channel_id] += 1
+                    elif isinstance(rec, Schema):
+                        self._schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        self._channels[rec.id] = rec
+                    elif isinstance(rec, Metadata):
+                        self._metadata[rec.name] = dict(rec.metadata)
+                    elif isinstance(rec, DataEnd):
+                        data_end = True
+                    elif hasattr(rec, "profile"):
+                        self.profile = rec.profile
+                    last_ok = f.tell()
+            except (EndOfFile, struct.error):
+                self.truncated = True
+            except CRCValidationError as e:
+                raise DataError(f"{self.path}: CRC mismatch, the file is corrupt ({one_line(e)})") from None
+            except _READ_ERRORS as e:
+                if not self.truncated:
+                    raise DataError(f"{self.path}: corrupt MCAP record ({one_line(e)})") from None
+        self._counts = dict(counts)
+        self._n_messages = sum(counts.values())
+        self._lost_bytes = 0 if data_end else max(0, self._size - last_ok)
+        if self.truncated and not any(
+            self._schema_name(ch) in IMAGE_SCHEMAS and counts.get(cid) for cid, ch in self._channels.items()
+        ):
+            raise DataError(
+                f"{self.path}: truncated MCAP (no footer/summary) and no complete chunk holds an image "
+                f"message ({self._size} bytes, {self._n_messages} messages recovered)"
+            )
+
+    def _schema_name(self, ch: Channel) -> str:
+        s = self._schemas.get(ch.schema_id)
+        return s.name if s is not None else ""
+
+    def _topics(self) -> dict[str, str]:
+        """topic -> schema name, in channel id order."""
+        out: dict[str, str] = {}
+        for cid in sorted(self._channels):
+            ch = self._channels[cid]
+            out.setdefault(ch.topic, self._schema_name(ch))
+        return out
+
+    def _topic_count(self, topic: str) -> int | None:
+        if self._counts is None:
+            return None
+        return sum(self._counts.get(cid, 0) for cid, ch in self._channels.items() if ch.topic == topic)
+
+    def _calibration_beside(self, image_topic: str) -> str | None:
+        """The calibration topic in the deepest namespace that contains ``image_topic``."""
+        best, best_len = None, -1
+        for topic, schema in self._topics().items():
+            if schema not in CALIBRATION_SCHEMAS:
+                continue
+            ns = topic.rsplit("/", 1)[0]
+            if image_topic.startswith(ns + "/") and len(ns) > best_len:
+                best, best_len = topic, len(ns)
+        return best
+
+    def _choose_image_topic(self, wanted: str | None) -> str:
+        topics = self._topics()
+        if wanted is not None:
+            if wanted not in topics:
+                images = [t for t, s in topics.items() if s in IMAGE_SCHEMAS]
+                raise DataError(
+                    f"{self.path}: image topic {wanted!r} not found "
+                    f"(image topics: {', '.join(images) or 'none'}; all topics: {', '.join(topics) or 'none'})"
+                )
+            if topics[wanted] not in IMAGE_SCHEMAS:
+                raise DataError(
+                    f"{self.path}:{wanted}: schema {topics[wanted]!r} is not an image type "
+                    f"(expected one of {', '.join(IMAGE_SCHEMAS)})"
+                )
+            return wanted
+        images = [t for t, s in topics.items() if s in IMAGE_SCHEMAS and self._topic_count(t) != 0]
+        if not images:
+            listing = ", ".join(f"{t} ({s or 'no schema'})" for t, s in topics.items())
+            raise DataError(
+                f"{self.path}: no image topic (expected messages with schema foxglove.CompressedImage, "
+                f"foxglove.RawImage, sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage; "
+                f"topics: {listing or 'none'})"
+            )
+        with_calib = [t for t in images if self._calibration_beside(t)]
+        chosen = (with_calib or images)[0]
+        if len(images) > 1:
+            log.info(
+                "%s: %d image topics (%s); using %s (set image_topic to choose another)",
+                self.path, len(images), ", ".join(images), chosen,
+            )
+        return chosen
+
+    def _choose_calibration_topic(self, wanted: str | None) -> str:
+        topics = self._topics()
+        if wanted is not None:
+            if wanted not in topics:
+                raise CameraError(f"{self.path}: calibration topic {wanted!r} not found")
+            if topics[wanted] not in CALIBRATION_SCHEMAS:
+                raise CameraError(
+                    f"{self.path}:{wanted}: schema {topics[wanted]!r} is not a calibration type "
+                    f"(expected one of {', '.join(CALIBRATION_SCHEMAS)})"
+                )
+            topic = wanted
+        else:
+            topic = self._calibration_beside(self.image_topic)
+            if topic is None:
+                others = [t for t, s in topics.items() if s in CALIBRATION_SCHEMAS]
+                ns = self.image_topic.rsplit("/", 1)[0] or "/"
+                raise CameraError(
+                    f"{self.path}:{self.image_topic}: image topic has no calibration (expected a "
+                    f"foxglove.CameraCalibration or sensor_msgs/msg/CameraInfo topic under {ns}; "
+                    f"calibration topics elsewhere: {', '.join(others) or 'none'}; set calibration_topic)"
+                )
+        if self._topic_count(topic) == 0:
+            raise CameraError(f"{self.path}:{topic}: calibration topic has no messages")
+        return topic
+
+    # -- raw access
+
+    def iter_raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        """Yield (schema, channel, message) records, undecoded: log-time order when the file is indexed,
+        file order otherwise (stopping silently where a truncated file breaks off).
+
+        Raises:
+            DataError: a chunk fails its CRC or cannot be decompressed.
+        """
+        wanted = set(topics) if topics is not None else None
+        with open(self.path, "rb") as f:
+            if self.indexed:
+                it = SeekingReader(f, validate_crcs=True).iter_messages(
+                    topics=sorted(wanted) if wanted is not None else None, log_time_order=True
+                )
+            else:
+                it = self._iter_stream(f, wanted)
+            while True:
+                try:
+                    item = next(it)
+                except StopIteration:
+                    return
+                except CRCValidationError as e:
+                    raise DataError(f"{self.path}: CRC mismatch, the file is corrupt ({one_line(e)})") from None
+                except _READ_ERRORS as e:
+                    raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
+                yield item
+
+    def _iter_stream(self, f: Any, wanted: set[str] | None) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        try:
+            for rec in StreamReader(f, validate_crcs=True).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                elif isinstance(rec, Message):
+                    ch = channels.get(rec.channel_id) or self._channels.get(rec.channel_id)
+                    if ch is None:
+                        raise DataError(f"{self.path}: message on unknown channel id {rec.channel_id}")
+                    if wanted is None or ch.topic in wanted:
+                        yield schemas.get(ch.schema_id) or self._schemas.get(ch.schema_id), ch, rec
+                elif isinstance(rec, Footer):
+                    return
+        except (EndOfFile, struct.error):
+            if not self.truncated:
+                raise DataError(f"{self.path}: unexpected end of file") from None
+
+    def iter_attachments(self) -> Iterator[Attachment]:
+        """Yield the file's attachment records."""
+        with open(self.path, "rb") as f:
+            try:
+                if self.indexed:
+                    yield from SeekingReader(f, validate_crcs=True).iter_attachments()
+                    return
+                for rec in StreamReader(f, validate_crcs=True).records:
+                    if isinstance(rec, Attachment):
+                        yield rec
+            except (EndOfFile, struct.error):
+                if not self.truncated:
+                    raise DataError(f"{self.path}: unexpected end of file") from None
+            except _READ_ERRORS as e:
+                raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
+
+    @property
+    def channels(self) -> dict[int, Channel]:
+        """Channel id -> channel record."""
+        return dict(self._channels)
+
+    @property
+    def schemas(self) -> dict[int, Schema]:
+        """Schema id -> schema record."""
+        return dict(self._schemas)
+
+    @property
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """Metadata records by name."""
+        return {k: dict(v) for k, v in self._metadata.items()}
+
+    def decode(self, schema: Schema | None, channel: Channel, message: Message) -> Any:
+        """Decode one message with its embedded schema (protobuf, ROS 2 cdr, or JSON).
+
+        Raises:
+            DataError: no decoder for the encoding, or the bytes do not parse.
+        """
+        dec = self._decoders.get(channel.id)
+        if dec is None:
+            if channel.message_encoding == "json":
+                dec = json.loads
+            else:
+                for factory in self._factories:
+                    dec = factory.decoder_for(channel.message_encoding, schema)
+                    if dec is not None:
+                        break
+            if dec is None:
+                raise DataError(
+                    f"{self.path}:{channel.topic}: cannot decode message encoding "
+                    f"{channel.message_encoding!r} with schema {schema.name if schema else None!r} "
+                    "(expected protobuf, cdr or json)"
+                )
+            self._decoders[channel.id] = dec
+        try:
+            return dec(message.data)
+        except (DecodeError, McapError, ValueError, IndexError, TypeError, struct.error) as e:
+            raise DataError(
+                f"{self.path}:{channel.topic}: cannot decode message at log time {message.log_time} "
+                f"({one_line(e)})"
+            ) from None
+
+    def calibration(self, schema: Schema | None, channel: Channel, message: Message) -> _Calib:
+        """Decode a calibration message."""
+        return _to_calib(self.decode(schema, channel, message))
+
+    def image(self, schema: Schema | None, channel: Channel, message: Message) -> _Image:
+        """Decode an image message (its pixel bytes stay encoded)."""
+        kind = IMAGE_SCHEMAS[schema.name if schema else ""]
+        return _to_image(self.decode(schema, channel, message), kind)
+
+    def first_calibration(self) -> _Calib:
+        """The first calibration message of the calibration topic."""
+        for schema, channel, message in self.iter_raw([self.calibration_topic]):
+            return self.calibration(schema, channel, message)
+        raise CameraError(f"{self.path}:{self.calibration_topic}: calibration topic has no messages")
+
+    # -- FrameSource
+
+    def __iter__(self) -> Iterator[Frame]:
+        first = self.first_calibration()
+        topics = [self.image_topic, self.calibration_topic] + ([self.gt_topic] if self.gt_topic else [])
+        source = f"{self.path}:{self.image_topic}"
+        cal: _Calib | None = None
+        gts: dict[int, Any] = {}
+        index, last_t, dup = 0, None, 0
+        warned_early = warned_size = False
+        for schema, channel, message in self.iter_raw(topics):
+            t = message.log_time
+            if channel.topic == self.calibration_topic:
+                cal = self.calibration(schema, channel, message)
+                continue
+            if channel.topic == self.gt_topic:
+                gts[t] = self.decode(schema, channel, message)
+                continue
+            if cal is None and not warned_early:
+                log.warning(
+                    "%s: images logged before the first calibration on %s use that first calibration",
+                    source, self.calibration_topic,
+                )
+                warned_early = True
+            c = cal or first
+            img = self.image(schema, channel, message)
+            cam = _camera(c, img)
+            if img.fmt in ("png", "jpeg") and not warned_size and c.width and c.height:
+                size = image_size(img.data)
+                if size is not None and size != (c.width, c.height):
+                    log.warning(
+                        "%s: image is %dx%d but the calibration on %s says %dx%d",
+                        source, *size, self.calibration_topic, c.width, c.height,
+                    )
+                    warned_size = True
+            gt = gts.pop(t, None)
+            if len(gts) > 16:  # ground truth of images that never came: drop what is older than now
+                gts = {k: v for k, v in gts.items() if k >= t}
+            dup = dup + 1 if t == last_t else 0
+            last_t = t
+            yield Frame(
+                frame_id=f"mcap:{t}" + (f"#{dup}" if dup else ""),
+                scene_id=int(gt.get("scene_id", 0)) if gt else 0,
+                im_id=int(gt.get("im_id", index)) if gt else index,
+                stamp_ns=t,
+                camera=cam,
+                image_format=img.fmt,
+                image_data=img.data,
+                raw_step=img.step,
+                gt=_gt_poses(gt) if gt else (),
+                source=source,
+            )
+            index += 1
+
+    def count(self) -> int:
+        if self._count is None:
+            n = self._topic_count(self.image_topic)
+            if n is None:  # no statistics record: count the index entries by reading
+                n = sum(1 for _ in self.iter_raw([self.image_topic]))
+            self._count = n
+        return self._count
+
+    def obj_id(self, name: str) -> int:
+        ids = self._metadata.get(METADATA_NAME, {}).get("obj_ids")
+        if not ids:
+            return 0
+        try:
+            return int(json.loads(ids).get(name, 0))
+        except (ValueError, AttributeError):
+            return 0
+
+    def describe(self) -> str:
+        gt = ", ground truth" if self.gt_topic else ""
+        return (
+            f"mcap {self.path} ({self.count()} frames on {self.image_topic}, "
+            f"calibration {self.calibration_topic}{gt})"
+        )
+
+
+# ------------------------------------------------------------------------------------------ writing
+
+
+def _timestamp(msg_ts: Any, ns: int) -> None:
+    msg_ts.FromNanoseconds(int(ns))
+
+
+class _Out:
+    """An MCAP writer with protobuf / JSON channels registered on first use."""
+
+    def __init__(self, f: Any, profile: str = "") -> None:
+        self.w = Writer(f, compression=CompressionType.ZSTD)
+        self.w.start(profile=profile, library=f"batchpose {__version__}")
+        self._schema_ids: dict[str, int] = {}
+        self._channel_ids: dict[str, int] = {}
+        self.topics: set[str] = set()
+
+    def proto(self, topic: str, msg: Any, log_time: int, publish_time: int | None = None) -> None:
+        cid = self._channel_ids.get(topic)
+        if cid is None:
+            name = type(msg).DESCRIPTOR.full_name
+            sid = self._schema_ids.get(name)
+            if sid is None:
+                sid = self._schema_ids[name] = register_schema(self.w, type(msg))
+            cid = self._channel_ids[topic] = self.w.register_channel(topic, "protobuf", sid)
+            self.topics.add(topic)
+        self.w.add_message(
+            cid, log_time=int(log_time), data=msg.SerializeToString(),
+            publish_time=int(log_time if publish_time is None else publish_time),
+        )
+
+    def json(self, topic: str, schema: dict, obj: Any, log_time: int) -> None:
+        cid = self._channel_ids.get(topic)
+        if cid is None:
+            name = schema["title"]
+            sid = self._schema_ids.get(name)
+            if sid is None:
+                sid = self._schema_ids[name] = self.w.register_schema(
+                    name, "jsonschema", json.dumps(schema).encode()
+                )
+            cid = self._channel_ids[topic] = self.w.register_channel(topic, "json", sid)
+            self.topics.add(topic)
+        self.w.add_message(
+            cid, log_time=int(log_time), data=json.dumps(obj, separators=(",", ":")).encode(),
+            publish_time=int(log_time),
+        )
+
+    def finish(self) -> None:
+        self.w.finish()
+
+
+def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: list[str]) -> None:
+    """Calibration, ground truth and image of one frame, all at ``frame.stamp_ns``."""
+    t = int(frame.stamp_ns)
+    cam = frame.camera
+    K = np.asarray(cam.K, dtype=np.float64).reshape(3, 3)
+    P = np.hstack([K, np.zeros((3, 1))])
+    cal = CameraCalibration(
+        frame_id=CAMERA_FRAME_ID, width=int(cam.width), height=int(cam.height),
+        distortion_model=cam.distortion_model or ("plumb_bob" if cam.dist.size else ""),
+        D=np.asarray(cam.dist, dtype=float).tolist(), K=K.reshape(-1).tolist(),
+        R=np.eye(3).reshape(-1).tolist(), P=P.reshape(-1).tolist(),
+    )
+    _timestamp(cal.timestamp, t)
+    out.proto(CALIBRATION_TOPIC, cal, t)
+    if frame.gt:
+        out.json(GT_TOPIC, GT_JSON_SCHEMA, {
+            "stamp_ns": t,
+            "frame_id": CAMERA_FRAME_ID,
+            "source_frame_id": frame.frame_id,
+            "scene_id": int(frame.scene_id),
+            "im_id": int(frame.im_id),
+            "objects": [
+                {
+                    "obj_name": g.obj_name,
+                    "obj_id": int(obj_ids(g.obj_name)),
+                    "cam_from_model": np.asarray(g.cam_from_model, dtype=float).reshape(-1).tolist(),
+                }
+                for g in frame.gt
+            ],
+        }, t)
+    fmt = frame.image_format.lower()
+    this_kind = "raw" if frame.image_format in RAW_ENCODINGS else "compressed"
+    if not kind:
+        kind.append(this_kind)
+    elif kind[0] != this_kind:
+        raise DataError(
+            f"{frame.source or frame.frame_id}: {this_kind} image after {kind[0]} images "
+            f"(one topic holds one image type)"
+        )
+    if this_kind == "compressed":
+        img: Any = CompressedImage(
+            frame_id=CAMERA_FRAME_ID, data=frame.image_data, format="jpeg" if fmt == "jpg" else fmt
+        )
+    else:
+        img = RawImage(
+            frame_id=CAMERA_FRAME_ID, width=int(cam.width), height=int(cam.height),
+            encoding=frame.image_format, step=int(frame.raw_step), data=frame.image_data,
+        )
+    _timestamp(img.timestamp, t)
+    out.proto(IMAGE_TOPIC, img, t)
+
+
+def _tmp_path(out_path: Path) -> Path:
+    """``OUT.mcap`` -> ``OUT.mcap.tmp``: written first, renamed when complete."""
+    return out_path.with_name(out_path.name + ".tmp")
+
+
+def write_frames_mcap(
+    frames: Iterable[Frame],
+    out_path: Path,
+    *,
+    obj_ids: Mapping[str, int] | Callable[[str], int] | None = None,
+    metadata: Mapping[str, str] | None = None,
+) -> int:
+    """Write frames as an MCAP log (atomically: ``OUT.mcap.tmp`` then rename).
+
+    Topics: ``/camera/image`` (foxglove.CompressedImage with the PNG/JPEG bytes copied, never
+    re-encoded; foxglove.RawImage for raw frames), ``/camera/calibration`` (foxglove.CameraCalibration)
+    and, for frames with ground truth, ``/ground_truth/poses`` (JSON, :data:`GT_JSON_SCHEMA`). Log and
+    publish time = ``frame.stamp_ns``; image ``frame_id`` "camera".
+
+    Args:
+        frames: frames in time order (consumed once, lazily).
+        out_path: output ``.mcap`` file.
+        obj_ids: object name -> data set id (a mapping, or a function such as
+            :meth:`FrameSource.obj_id`), stored in the ground-truth messages and, for every object seen
+            there and every key of a mapping, in the ``batchpose`` metadata record (read back by
+            :meth:`McapFrameSource.obj_id`).
+        metadata: extra string key/values for the ``batchpose`` metadata record.
+
+    Returns:
+        Number of frames written.
+    """
+    out_path = Path(out_path)
+    tmp = _tmp_path(out_path)
+    if obj_ids is None:
+        obj_ids = {}
+    lookup = obj_ids if callable(obj_ids) else (lambda name, m=obj_ids: int(m.get(name, 0)))
+    seen: set[str] = set() if callable(obj_ids) else set(obj_ids)
+    n = 0
+    try:
+        with open(tmp, "wb") as f:
+            out = _Out(f)
+            kind: list[str] = []
+            for frame in frames:
+                _write_frame(out, frame, lookup, kind)
+                seen.update(g.obj_name for g in frame.gt)
+                n += 1
+            meta = {"version": __version__, **(metadata or {})}
+            ids = {name: lookup(name) for name in sorted(seen)}
+            if any(ids.values()):
+                meta["obj_ids"] = json.dumps(ids, sort_keys=True)
+            out.w.add_metadata(METADATA_NAME, meta)
+            out.finish()
+        os.replace(tmp, out_path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    log.debug("wrote %d frames to %s", n, out_path)
+    return n
+
+
+# -------------------------------------------------------------------------------------- write-back
+
+
+def mesh_to_glb(mesh: Any, max_texture_px: int = 1024) -> bytes:
+    """Binary glTF of a (textured) trimesh, with its texture downscaled to keep the MCAP small.
+
+    Args:
+        mesh: ``trimesh.Trimesh`` (or ``trimesh.Scene``) in metres, model frame.
+        max_texture_px: longest texture side after downscaling (the YCB scans ship 4096²).
+
+    Returns:
+        GLB bytes; vertices stay in the model frame (glTF's Y-up is undone by the model pose that
+        :func:`write_poses_mcap` gives Foxglove).
+    """
+    import trimesh
+    from PIL import Image
+
+    geoms = list(mesh.geometry.values()) if isinstance(mesh, trimesh.Scene) else [mesh]
+    out = []
+    for g in geoms:
+        g = g.copy()
+        mat = getattr(g.visual, "material", None)
+        for attr in ("image", "baseColorTexture"):
+            img = getattr(mat, attr, None)
+            if img is None or max(img.size) <= max_texture_px:
+                continue
+            scale = max_texture_px / max(img.size)
+            small = img.resize((max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale))),
+                               Image.LANCZOS)
+            if small.mode == "RGB":  # trimesh embeds JPEG-format images as JPEG (else PNG, 5x larger)
+                buf = io.BytesIO()
+                small.save(buf, format="JPEG", quality=90)
+                small = Image.open(io.BytesIO(buf.getvalue()))
+                small.load()
+            setattr(mat, attr, small)
+        out.append(g)
+    scene = trimesh.Scene(out) if len(out) > 1 else out[0]
+    return bytes(scene.export(file_type="glb"))
+
+
+def _glb_bounds(name: str, glb: bytes) -> np.ndarray:
+    """(2, 3) min/max corner of a GLB's geometry, metres."""
+    import trimesh
+
+    try:
+        scene = trimesh.load(io.BytesIO(glb), file_type="glb")
+    except (ValueError, KeyError, IndexError, TypeError, OSError, struct.error) as e:
+        raise DataError(f"mesh {name!r}: cannot read the glb bytes ({one_line(e)})") from None
+    b = np.asarray(scene.bounds, dtype=np.float64)
+    if b.shape != (2, 3) or not np.all(np.isfinite(b)):
+        raise DataError(f"mesh {name!r}: glb has no geometry")
+    return b
+
+
+def _color(i: int, a: float = 1.0) -> Color:
+    r, g, b = _PALETTE[i % len(_PALETTE)]
+    return Color(r=r, g=g, b=b, a=a)
+
+
+def _pose_msg(T: np.ndarray) -> Pose:
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x, y, z, w
+    return Pose(
+        position=Vector3(x=float(T[0, 3]), y=float(T[1, 3]), z=float(T[2, 3])),
+        orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])),
+    )
+
+
+def _rows(records: Any) -> list[dict]:
+    if hasattr(records, "to_dict"):  # a pandas DataFrame read from poses.parquet
+        records = records.to_dict("records")
+    return [dict(r) for r in records]
+
+
+class _PoseWriter:
+    """Writes the per-image batchpose topics."""
+
+    def __init__(self, out: _Out, rows: list[dict], meshes: Mapping[str, Any]) -> None:
+        self.out = out
+        self.by_stamp: dict[int, list[dict]] = defaultdict(list)
+        for r in rows:
+            self.by_stamp[int(r["stamp_ns"])].append(r)
+        names = sorted({str(r["obj_name"]) for r in rows} | set(meshes))
+        self.index = {n: i for i, n in enumerate(names)}
+        self.glb: dict[str, bytes] = {}
+        for name, m in meshes.items():
+            self.glb[name] = m if isinstance(m, (bytes, bytearray)) else mesh_to_glb(m)
+        self.bounds = {name: _glb_bounds(name, g) for name, g in self.glb.items()}
+        missing = sorted({str(r["obj_name"]) for r in rows} - set(self.glb))
+        if missing:
+            log.warning("no mesh for %s: no 3D model or box in the MCAP for them", ", ".join(missing))
+        self.scene_written = False
+        self.n_images = 0
+
+    def scene(self, log_time: int) -> None:
+        """One SceneUpdate with every mesh, locked to its object frame, alive for the whole log."""
+        if self.scene_written:
+            return
+        upd = SceneUpdate()
+        for name, glb in sorted(self.glb.items()):
+            e = upd.entities.add()
+            _timestamp(e.timestamp, log_time)
+            e.frame_id = f"object/{name}"
+            e.id = name
+            e.frame_locked = True  # lifetime left 0: forever
+            e.models.append(ModelPrimitive(
+                pose=Pose(position=Vector3(x=0, y=0, z=0), orientation=_GLTF_UNDO_Y_UP),
+                scale=Vector3(x=1, y=1, z=1), color=_color(self.index[name]), override_color=False,
+                media_type="model/gltf-binary", data=bytes(glb),
+            ))
+        self.out.proto(SCENE_TOPIC, upd, log_time)
+        self.scene_written = True
+
+    def image(self, log_time: int, stamp_ns: int, frame_id: str, camera: Camera | None, fid: str) -> None:
+        """Pose topics for the image logged at ``log_time`` (header stamp ``stamp_ns``)."""
+        rows = self.by_stamp.pop(int(log_time), [])
+        self.n_images += 1
+        out = self.out
+        ann = ImageAnnotations()
+        status = []
+        n_fail = 0
+        for r in sorted(rows, key=lambda r: str(r["obj_name"])):
+            name = str(r["obj_name"])
+            i = self.index.get(name, 0)
+            T = row_cam_from_model(r)
+            ok = str(r["status"]) == "ok" and T is not None
+            conf = float(r.get("confidence", 0.0) or 0.0)
+            conf = conf if np.isfinite(conf) else 0.0  # JSON has no NaN
+            status.append({
+                "obj_name": name, "status": str(r["status"]), "reason": str(r.get("reason", "") or ""),
+                "confidence": conf, "n_inliers": int(r.get("n_inliers", 0) or 0),
+            })
+            if not ok:
+                text = f"{name}: {r['status']}" + (f" ({r.get('reason')})" if r.get("reason") else "")
+                ta = ann.texts.add()
+                _timestamp(ta.timestamp, stamp_ns)
+                ta.position.CopyFrom(Point2(x=8.0, y=20.0 + 18.0 * n_fail))
+                ta.text, ta.font_size = text, 14.0
+                ta.text_color.CopyFrom(_color(i))
+                ta.background_color.CopyFrom(Color(r=0, g=0, b=0, a=0.6))
+                n_fail += 1
+                continue
+            tf = FrameTransform(parent_frame_id=frame_id, child_frame_id=f"object/{name}")
+            _timestamp(tf.timestamp, stamp_ns)
+            pose = _pose_msg(T)
+            tf.translation.CopyFrom(pose.position)
+            tf.rotation.CopyFrom(pose.orientation)
+            out.proto(TF_TOPIC, tf, log_time)
+            pif = PosesInFrame(frame_id=frame_id, poses=[pose])
+            _timestamp(pif.timestamp, stamp_ns)
+            out.proto(POSES_TOPIC_PREFIX + name, pif, log_time)
+            self._annotate(ann, name, i, T, camera, r, conf, stamp_ns)
+        out.proto(ANNOTATIONS_TOPIC, ann, log_time)
+        out.json(STATUS_TOPIC, STATUS_JSON_SCHEMA, {
+            "frame_id": str(rows[0]["frame_id"]) if rows else fid, "stamp_ns": int(log_time),
+            "n_ok": sum(s["status"] == "ok" for s in status), "objects": status,
+        }, log_time)
+
+    def _annotate(
+        self, ann: ImageAnnotations, name: str, i: int, T: np.ndarray, camera: Camera | None,
+        r: Mapping[str, Any], conf: float, stamp_ns: int,
+    ) -> None:
+        inl = np.asarray(r.get("inliers_px", []) if r.get("inliers_px") is not None else [], dtype=float)
+        if inl.size >= 2:
+            pa = ann.points.add()
+            _timestamp(pa.timestamp, stamp_ns)
+            pa.type = PointsAnnotation.POINTS
+            pa.points.extend(Point2(x=float(x), y=float(y)) for x, y in inl.reshape(-1, 2))
+            pa.outline_color.CopyFrom(_color(i))
+            pa.thickness = 3.0
+        if camera is None or name not in self.bounds:
+            return
+        K = np.asarray(camera.K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+            return
+        lo, hi = self.bounds[name]
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        cam_pts = corners @ T[:3, :3].T + T[:3, 3]
+        if np.any(cam_pts[:, 2] <= 1e-6):  # box reaches behind the camera: a projection would wrap around
+            return
+        rvec, _ = cv2.Rodrigues(T[:3, :3])
+        dist = np.asarray(camera.dist, dtype=np.float64) if camera.dist.size else None
+        uv, _ = cv2.projectPoints(corners, rvec, T[:3, 3].astype(np.float64), K, dist)
+        uv = uv.reshape(-1, 2)
+        pa = ann.points.add()
+        _timestamp(pa.timestamp, stamp_ns)
+        pa.type = PointsAnnotation.LINE_LIST
+        pa.points.extend(Point2(x=float(x), y=float(y)) for x, y in uv[_BOX_EDGES.reshape(-1)])
+        pa.outline_color.CopyFrom(_color(i))
+        pa.thickness = 2.0
+        ta = ann.texts.add()
+        _timestamp(ta.timestamp, stamp_ns)
+        ta.position.CopyFrom(Point2(x=float(uv[:, 0].min()), y=float(max(uv[:, 1].min() - 4.0, 12.0))))
+        ta.text, ta.font_size = f"{name} {conf:.2f}", 14.0
+        ta.text_color.CopyFrom(_color(i))
+        ta.background_color.CopyFrom(Color(r=0, g=0, b=0, a=0.6))
+
+    def unmatched(self) -> int:
+        return sum(len(v) for v in self.by_stamp.values())
+
+
+def write_poses_mcap(
+    out_path: Path,
+    records: Iterable[Mapping[str, Any]],
+    meshes: Mapping[str, Any],
+    input_mcap: Path | None = None,
+    frames: Iterable[Frame] | None = None,
+    *,
+    image_topic: str | None = None,
+    calibration_topic: str | None = None,
+) -> Path:
+    """Write the estimates as an MCAP for Foxglove (atomically: ``OUT.mcap.tmp`` then rename).
+
+    With ``input_mcap``: every input message is copied unchanged (topic, schema, log and publish
+    time, sequence, bytes; plus metadata and attachments) and the batchpose topics (module docstring)
+    are added at each image's log time. Without it, ``frames`` are written as by
+    :func:`write_frames_mcap` plus the batchpose topics.
+
+    Args:
+        out_path: output file; must differ from ``input_mcap``.
+        records: ``poses.parquet`` rows (dicts or a DataFrame): ``frame_id``, ``stamp_ns``,
+            ``obj_name``, ``status``, ``reason``, ``R`` (9, row-major), ``t_m`` (3, metres),
+            ``confidence``, ``n_inliers``, ``inliers_px`` (x0 y0 x1 y1 ..., pixels). A row belongs to the
+            image whose log time equals its ``stamp_ns``.
+        meshes: object name -> binary glTF bytes (see :func:`mesh_to_glb`; a trimesh is converted).
+        input_mcap: the log the frames came from.
+        frames: the frames (folder input), when there is no input log.
+        image_topic: image topic of ``input_mcap`` the records refer to (default: as
+            :class:`McapFrameSource` chooses).
+        calibration_topic: its calibration topic (default: the one beside the image topic).
+
+    Returns:
+        ``out_path``.
+    """
+    out_path = Path(out_path)
+    if (input_mcap is None) == (frames is None):
+        raise ConfigError("write_poses_mcap: pass exactly one of input_mcap and frames")
+    if input_mcap is not None and out_path.resolve() == Path(input_mcap).resolve():
+        raise ConfigError(f"{out_path}: the output would overwrite the input log")
+    rows = _rows(records)
+    tmp = _tmp_path(out_path)
+    try:
+        with open(tmp, "wb") as f:
+            if input_mcap is not None:
+                pw = _copy_with_poses(f, Path(input_mcap), rows, meshes, image_topic, calibration_topic)
+            else:
+                out = _Out(f)
+                out.w.add_metadata(METADATA_NAME, {"version": __version__})
+                pw = _PoseWriter(out, rows, meshes)
+                kind: list[str] = []
+                for frame in frames or ():
+                    pw.scene(frame.stamp_ns)
+                    _write_frame(out, frame, lambda _name: 0, kind)
+                    pw.image(frame.stamp_ns, frame.stamp_ns, CAMERA_FRAME_ID, frame.camera, frame.frame_id)
+                out.finish()
+        os.replace(tmp, out_path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    if pw.unmatched():
+        log.warning("%s: %d pose records match no image log time (stamp_ns)", out_path, pw.unmatched())
+    log.info("wrote %s (%d images, %d pose records)", out_path, pw.n_images, len(rows))
+    return out_path
+
+
+def _copy_with_poses(
+    f: Any, input_mcap: Path, rows: list[dict], meshes: Mapping[str, Any],
+    image_topic: str | None, calibration_topic: str | None,
+) -> _PoseWriter:
+    src = McapFrameSource(input_mcap, image_topic=image_topic, calibration_topic=calibration_topic)
+    clash = sorted(ch.topic for ch in src.channels.values() if ch.topic.startswith(OUTPUT_PREFIX))
+    if clash:
+        raise DataError(
+            f"{input_mcap}: already holds batchpose output topics ({', '.join(clash[:3])}); "
+            "write back into the original log instead"
+        )
+    out = _Out(f, profile=src.profile)
+    schema_ids: dict[int, int] = {}
+    for sid, s in sorted(src.schemas.items()):
+        schema_ids[sid] = out.w.register_schema(s.name, s.encoding, s.data)
+    channel_ids: dict[int, int] = {}
+    for cid, ch in sorted(src.channels.items()):
+        channel_ids[cid] = out.w.register_channel(
+            ch.topic, ch.message_encoding, schema_ids.get(ch.schema_id, 0), dict(ch.metadata)
+        )
+    for name, data in src.metadata.items():
+        out.w.add_metadata(name, data)
+    for a in src.iter_attachments():
+        out.w.add_attachment(a.create_time, a.log_time, a.name, a.media_type, a.data)
+    pw = _PoseWriter(out, rows, meshes)
+    cal: _Calib | None = None
+    first: _Calib | None = None
+    for schema, channel, message in src.iter_raw():
+        pw.scene(message.log_time)
+        out.w.add_message(
+            channel_ids[channel.id], log_time=message.log_time, data=message.data,
+            publish_time=message.publish_time, sequence=message.sequence,
+        )
+        if channel.topic == src.calibration_topic:
+            cal = src.calibration(schema, channel, message)
+        elif channel.topic == src.image_topic:
+            if cal is None and first is None:
+                first = src.first_calibration()
+            img = src.image(schema, channel, message)
+            c = cal or first
+            cam = _camera(c, img) if c is not None else None
+            pw.image(message.log_time, img.stamp_ns, img.frame_id or CAMERA_FRAME_ID, cam,
+                     f"mcap:{message.log_time}")
+    out.finish()
+    return pw

@@ -1,0 +1,230 @@
+"""Folder readers (YCB-Video, BOP, plain images) and the ``frames:`` manifest factory, on tiny data sets."""
+
+from __future__ import annotations
+
+import json
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import scipy.io
+import yaml
+
+from batchpose.datasets import (
+    FRAME_PERIOD_NS,
+    BopFrameSource,
+    ImagesFrameSource,
+    YcbvFrameSource,
+    image_size,
+    open_frames,
+)
+from batchpose.errors import CameraError, ConfigError, DataError
+from batchpose.frames import decode_image
+
+SHARED_YCBV = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_dev"
+K = np.array([[500.0, 0.0, 15.5], [0.0, 510.0, 11.5], [0.0, 0.0, 1.0]])
+
+
+def _png(path: Path, rng: np.random.Generator, w: int = 32, h: int = 24) -> np.ndarray:
+    img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), img)
+    return img
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    return np.hstack([q, rng.normal(size=(3, 1)) + [[0], [0], [1]]])
+
+
+def make_ycbv(root: Path, seed: int = 0) -> dict:
+    """Two real frames (video 0001) and one synthetic frame, with their 3x4 poses."""
+    rng = np.random.default_rng(seed)
+    (root / "classes.txt").parent.mkdir(parents=True, exist_ok=True)
+    (root / "classes.txt").write_text("002_master_chef_can\n003_cracker_box\n004_sugar_box\n")
+    poses = {}
+    for rel, cls in (("data/0001/000001", [1, 3]), ("data/0001/000002", [2, 3]), ("data_syn/000007", [2])):
+        _png(root / f"{rel}-color.png", rng)
+        P = np.stack([_pose(rng) for _ in cls], axis=2)
+        # A real meta.mat also holds a big vertmap: the reader must not need it.
+        scipy.io.savemat(
+            root / f"{rel}-meta.mat",
+            {
+                "cls_indexes": np.array(cls, dtype=np.uint8).reshape(-1, 1),
+                "poses": P if len(cls) > 1 else P[:, :, 0],  # MATLAB stores one pose as 3x4
+                "intrinsic_matrix": K,
+                "vertmap": np.zeros((24, 32, 3), np.float32),
+            },
+        )
+        poses[rel] = P
+    return poses
+
+
+def test_ycbv_frames_ids_ground_truth_and_bytes(tmp_path):
+    poses = make_ycbv(tmp_path)
+    src = YcbvFrameSource(tmp_path)
+    assert src.count() == 3 and len(src) == 3
+    assert isinstance(iter(src), types.GeneratorType)  # lazy
+    frames = list(src)
+    assert [f.frame_id for f in frames] == ["0001/000001", "0001/000002", "data_syn/000007"]
+    assert [(f.scene_id, f.im_id) for f in frames] == [(1, 1), (1, 2), (10000, 7)]
+    assert [f.stamp_ns for f in frames] == [0, FRAME_PERIOD_NS, 2 * FRAME_PERIOD_NS]
+    f0 = frames[0]
+    assert f0.image_data == (tmp_path / "data/0001/000001-color.png").read_bytes()
+    assert f0.image_format == "png" and (f0.camera.width, f0.camera.height) == (32, 24)
+    np.testing.assert_array_equal(f0.camera.K, K)
+    assert [g.obj_name for g in f0.gt] == ["002_master_chef_can", "004_sugar_box"]
+    np.testing.assert_allclose(f0.gt[1].cam_from_model[:3, :], poses["data/0001/000001"][:, :, 1])
+    np.testing.assert_array_equal(f0.gt[1].cam_from_model[3], [0, 0, 0, 1])
+    assert [g.obj_name for g in frames[2].gt] == ["003_cracker_box"]
+    np.testing.assert_allclose(frames[2].gt[0].cam_from_model[:3, :], poses["data_syn/000007"][:, :, 0])
+    assert src.obj_id("003_cracker_box") == 2 and src.obj_id("nope") == 0
+    assert "3 frames" in src.describe()
+    assert decode_image(f0).shape == (24, 32, 3)
+
+
+def test_ycbv_missing_meta_and_bad_class(tmp_path):
+    make_ycbv(tmp_path)
+    (tmp_path / "data/0001/000002-meta.mat").unlink()
+    with pytest.raises(DataError, match="000002-meta.mat: missing"):
+        YcbvFrameSource(tmp_path)
+    make_ycbv(tmp_path)
+    (tmp_path / "classes.txt").write_text("only_one\n")
+    with pytest.raises(DataError, match=r"cls_indexes value 3 outside 1..1"):
+        list(YcbvFrameSource(tmp_path))
+
+
+def test_ycbv_missing_classes(tmp_path):
+    make_ycbv(tmp_path)
+    (tmp_path / "classes.txt").unlink()
+    with pytest.raises(DataError, match="classes.txt: missing"):
+        YcbvFrameSource(tmp_path)
+
+
+def make_bop(root: Path, seed: int = 0) -> dict:
+    """Scene 000048 with a PNG (im 1, one object) and a JPEG (im 2, no ground truth)."""
+    rng = np.random.default_rng(seed)
+    scene = root / "000048"
+    _png(scene / "rgb" / "000001.png", rng)
+    img = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    cv2.imwrite(str(scene / "rgb" / "000002.jpg"), img)
+    cams = {str(i): {"cam_K": K.reshape(-1).tolist(), "depth_scale": 0.1} for i in (1, 2)}
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    P = _pose(rng)
+    gt = {"1": [{"cam_R_m2c": P[:, :3].reshape(-1).tolist(), "cam_t_m2c": (P[:, 3] * 1000).tolist(), "obj_id": 5}]}
+    (scene / "scene_gt.json").write_text(json.dumps(gt))
+    return {"pose": P}
+
+
+def test_bop_frames_mm_to_m_and_names(tmp_path):
+    truth = make_bop(tmp_path)
+    src = BopFrameSource(tmp_path, obj_names={"5": "006_mustard_bottle"})
+    frames = list(src)
+    assert [f.frame_id for f in frames] == ["000048/000001", "000048/000002"]
+    assert [(f.scene_id, f.im_id, f.image_format) for f in frames] == [(48, 1, "png"), (48, 2, "jpeg")]
+    np.testing.assert_array_equal(frames[0].camera.K, K)
+    assert (frames[1].camera.width, frames[1].camera.height) == (32, 24)  # from the JPEG header
+    (g,) = frames[0].gt
+    assert g.obj_name == "006_mustard_bottle"
+    np.testing.assert_allclose(g.cam_from_model[:3, :], truth["pose"], atol=1e-12)  # mm -> m
+    assert frames[1].gt == ()
+    assert src.obj_id("006_mustard_bottle") == 5
+    default = BopFrameSource(tmp_path)
+    assert next(iter(default)).gt[0].obj_name == "obj_000005" and default.obj_id("obj_000005") == 5
+
+
+def test_bop_missing_image(tmp_path):
+    make_bop(tmp_path)
+    (tmp_path / "000048/rgb/000002.jpg").unlink()
+    with pytest.raises(DataError, match="000002.png: missing"):
+        BopFrameSource(tmp_path)
+
+
+def make_images(root: Path, n: int = 3, seed: int = 0, **intr) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    imgs = [_png(root / f"img_{i:03d}.png", rng) for i in range(n)]
+    spec = {"fx": 500.0, "fy": 510.0, "cx": 15.5, "cy": 11.5, "width": 32, "height": 24, **intr}
+    (root / "intrinsics.yaml").write_text(yaml.safe_dump(spec))
+    return imgs
+
+
+def test_images_folder_with_distortion(tmp_path):
+    imgs = make_images(tmp_path, dist=[0.1, -0.01, 0.0, 0.0, 0.001])
+    src = ImagesFrameSource(tmp_path)
+    frames = list(src)
+    assert [f.frame_id for f in frames] == ["img_000", "img_001", "img_002"]
+    np.testing.assert_array_equal(frames[1].camera.K, K)
+    assert frames[1].camera.distortion_model == "plumb_bob"
+    np.testing.assert_array_equal(frames[1].camera.dist, [0.1, -0.01, 0.0, 0.0, 0.001])
+    np.testing.assert_array_equal(decode_image(frames[2]), imgs[2][:, :, ::-1])  # BGR file -> RGB
+
+
+@pytest.mark.parametrize(
+    ("change", "error", "match"),
+    [
+        ({"fov": 60}, ConfigError, "unknown key 'fov'"),
+        ({"fx": "wide"}, ConfigError, "must be numbers"),
+        ({"fx": -1.0}, CameraError, "focal lengths must be positive"),
+    ],
+)
+def test_images_bad_intrinsics(tmp_path, change, error, match):
+    make_images(tmp_path, **change)
+    with pytest.raises(error, match=match):
+        ImagesFrameSource(tmp_path)
+
+
+def test_images_missing_intrinsics_key(tmp_path):
+    make_images(tmp_path)
+    spec = yaml.safe_load((tmp_path / "intrinsics.yaml").read_text())
+    del spec["height"]
+    (tmp_path / "intrinsics.yaml").write_text(yaml.safe_dump(spec))
+    with pytest.raises(ConfigError, match="intrinsics.yaml: missing key 'height'"):
+        ImagesFrameSource(tmp_path)
+
+
+def test_open_frames_resolves_relative_paths(tmp_path):
+    make_ycbv(tmp_path / "ds")
+    src = open_frames({"format": "ycbv", "root": "ds"}, base_dir=tmp_path)
+    assert src.count() == 3
+    make_images(tmp_path / "imgs")
+    (tmp_path / "imgs" / "intrinsics.yaml").rename(tmp_path / "cam.yaml")
+    src = open_frames({"format": "images", "root": "imgs", "intrinsics": "cam.yaml"}, base_dir=tmp_path)
+    assert src.count() == 3
+
+
+@pytest.mark.parametrize(
+    ("spec", "error", "match"),
+    [
+        ({"format": "kitti", "root": "x"}, ConfigError, "frames.format: unknown format 'kitti'"),
+        ({"root": "x"}, ConfigError, "frames.format: unknown format None"),
+        ({"format": "ycbv"}, ConfigError, "frames.root: missing"),
+        ({"format": "ycbv", "root": "x", "intrinsics": "y"}, ConfigError, "frames.intrinsics: unknown key"),
+        ({"format": "ycbv", "root": "nowhere"}, DataError, "frames.root: .*nowhere does not exist"),
+        ({"format": "mcap", "path": "nowhere.mcap"}, DataError, "frames.path: .*nowhere.mcap does not exist"),
+        ({"format": "bop", "root": ".", "obj_names": [1]}, ConfigError, "frames.obj_names: expected a mapping"),
+        ("ycbv", ConfigError, "frames: expected a mapping"),
+    ],
+)
+def test_open_frames_bad_spec(tmp_path, spec, error, match):
+    with pytest.raises(error, match=match):
+        open_frames(spec, base_dir=tmp_path)
+
+
+def test_image_size_png_and_jpeg():
+    img = np.zeros((17, 29, 3), np.uint8)
+    assert image_size(cv2.imencode(".png", img)[1].tobytes()) == (29, 17)
+    assert image_size(cv2.imencode(".jpg", img)[1].tobytes()) == (29, 17)
+    assert image_size(b"") is None and image_size(b"GIF89a....") is None
+
+
+@pytest.mark.skipif(not SHARED_YCBV.is_dir(), reason=f"shared YCB-Video dev data not at {SHARED_YCBV}")
+def test_shared_ycbv_dev():
+    src = open_frames({"format": "ycbv", "root": str(SHARED_YCBV)}, base_dir=Path.cwd())
+    assert src.count() == 21
+    f = next(iter(src))
+    assert f.frame_id == "0000/000001" and (f.camera.width, f.camera.height) == (640, 480)
+    assert f.camera.K[0, 0] == pytest.approx(1066.778)
+    assert "009_gelatin_box" in [g.obj_name for g in f.gt]

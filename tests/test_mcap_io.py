@@ -1,0 +1,574 @@
+"""MCAP reading (foxglove + ROS 2), writing, write-back and bad logs, on tiny logs built here."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from mcap.data_stream import ReadDataStream
+from mcap.reader import make_reader
+from mcap.records import Chunk, Message
+from mcap.stream_reader import breakup_chunk
+from mcap.writer import CompressionType, IndexType, Writer
+from mcap_protobuf.decoder import DecoderFactory
+from mcap_protobuf.schema import register_schema
+from mcap_ros2.writer import Writer as Ros2Writer
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from batchpose.errors import CameraError, ConfigError, DataError, ImageError
+from batchpose.frames import Camera, Frame, ObjectPose, decode_image
+from batchpose.mcap_io import (
+    ANNOTATIONS_TOPIC,
+    SCENE_TOPIC,
+    STATUS_TOPIC,
+    TF_TOPIC,
+    McapFrameSource,
+    mesh_to_glb,
+    write_frames_mcap,
+    write_poses_mcap,
+)
+
+W, H = 64, 48
+K1 = np.array([[80.0, 0.0, 31.5], [0.0, 82.0, 23.5], [0.0, 0.0, 1.0]])
+K2 = np.array([[90.0, 0.0, 30.0], [0.0, 91.0, 22.0], [0.0, 0.0, 1.0]])
+T0 = 1_700_000_000_000_000_000
+DT = 50_000_000
+
+
+def _img(rng: np.random.Generator) -> np.ndarray:
+    # Smooth colour blobs so that JPEG keeps them recognisable; a few per image, all distinct.
+    img = cv2.resize(rng.integers(0, 256, (6, 8, 3), dtype=np.uint8), (W, H), interpolation=cv2.INTER_CUBIC)
+    return img
+
+
+def _enc(img: np.ndarray, ext: str = ".png") -> bytes:
+    return cv2.imencode(ext, img)[1].tobytes()
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+    T[:3, 3] = [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), rng.uniform(0.5, 1.0)]
+    return T
+
+
+def _frames(n: int, ext: str = ".png", seed: int = 0) -> list[Frame]:
+    rng = np.random.default_rng(seed)
+    cam = Camera(K=K1, width=W, height=H, dist=np.array([0.01, -0.002, 0.0, 0.0, 0.0]), distortion_model="plumb_bob")
+    return [
+        Frame(
+            frame_id=f"0001/{i:06d}", scene_id=1, im_id=i, stamp_ns=T0 + i * DT, camera=cam,
+            image_format="png" if ext == ".png" else "jpeg", image_data=_enc(_img(rng), ext),
+            gt=(ObjectPose("003_cracker_box", _pose(rng)), ObjectPose("004_sugar_box", _pose(rng))), source=f"f{i}",
+        )
+        for i in range(n)
+    ]
+
+
+class Log:
+    """A small MCAP written with the plain mcap writer (so tests control chunking and compression)."""
+
+    def __init__(self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = "") -> None:
+        self.f = open(path, "wb")  # noqa: SIM115 - closed in close()
+        kw = {} if summary else {
+            "index_types": IndexType.NONE, "repeat_channels": False, "repeat_schemas": False,
+            "use_statistics": False, "use_summary_offsets": False,
+        }
+        self.w = Writer(self.f, chunk_size=chunk_size, compression=CompressionType.NONE, **kw)
+        self.w.start(profile=profile, library="test")
+        self.channels: dict[str, int] = {}
+
+    def proto(self, topic: str, msg, t: int, seq: int = 0) -> None:
+        if topic not in self.channels:
+            sid = register_schema(self.w, type(msg))
+            self.channels[topic] = self.w.register_channel(topic, "protobuf", sid)
+        self.w.add_message(self.channels[topic], log_time=t, data=msg.SerializeToString(), publish_time=t + 7,
+                           sequence=seq)
+
+    def json(self, topic: str, obj, t: int) -> None:
+        if topic not in self.channels:
+            sid = self.w.register_schema("test.Thing", "jsonschema", b'{"type":"object"}')
+            self.channels[topic] = self.w.register_channel(topic, "json", sid, {"unit": "m/s2"})
+        self.w.add_message(self.channels[topic], log_time=t, data=json.dumps(obj).encode(), publish_time=t)
+
+    def close(self) -> None:
+        self.w.finish()
+        self.f.close()
+
+
+def _calib(t: int, K: np.ndarray = K1, frame_id: str = "cam_optical", w: int = W, h: int = H) -> CameraCalibration:
+    c = CameraCalibration(frame_id=frame_id, width=w, height=h, distortion_model="plumb_bob",
+                          D=[0.1, 0.0, 0.0, 0.0, 0.0], K=K.reshape(-1).tolist(),
+                          P=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist())
+    c.timestamp.FromNanoseconds(t)
+    return c
+
+
+def _cimg(t: int, data: bytes, fmt: str = "jpeg", frame_id: str = "cam_optical") -> CompressedImage:
+    m = CompressedImage(frame_id=frame_id, format=fmt, data=data)
+    m.timestamp.FromNanoseconds(t)
+    return m
+
+
+def _simple_log(path: Path, n: int = 4, seed: int = 0, **kw) -> list[bytes]:
+    rng = np.random.default_rng(seed)
+    datas = [_enc(_img(rng), ".jpg") for _ in range(n)]
+    log_ = Log(path, **kw)
+    for i, d in enumerate(datas):
+        t = T0 + i * DT
+        log_.proto("/cam/calibration", _calib(t), t)
+        log_.proto("/cam/image", _cimg(t, d), t, seq=i)
+    log_.close()
+    return datas
+
+
+# ------------------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_convert_then_ingest_identical_pixels_and_K(tmp_path, ext):
+    frames = _frames(3, ext)
+    out = tmp_path / "log.mcap"
+    assert write_frames_mcap(iter(frames), out, obj_ids={"003_cracker_box": 2, "004_sugar_box": 3}) == 3
+    assert not (tmp_path / "log.mcap.tmp").exists()
+    src = McapFrameSource(out)
+    assert (src.image_topic, src.calibration_topic, src.gt_topic, src.count()) == (
+        "/camera/image", "/camera/calibration", "/ground_truth/poses", 3)
+    back = list(src)
+    for a, b in zip(frames, back, strict=True):
+        assert b.image_data == a.image_data  # bytes copied, never re-encoded
+        np.testing.assert_array_equal(decode_image(b), decode_image(a))
+        np.testing.assert_array_equal(b.camera.K, a.camera.K)
+        np.testing.assert_array_equal(b.camera.dist, a.camera.dist)
+        assert (b.camera.width, b.camera.height, b.camera.distortion_model) == (W, H, "plumb_bob")
+        assert (b.stamp_ns, b.scene_id, b.im_id, b.frame_id) == (a.stamp_ns, 1, a.im_id, f"mcap:{a.stamp_ns}")
+        assert [g.obj_name for g in b.gt] == [g.obj_name for g in a.gt]
+        for ga, gb in zip(a.gt, b.gt, strict=True):
+            np.testing.assert_array_equal(gb.cam_from_model, ga.cam_from_model)
+    assert src.obj_id("004_sugar_box") == 3 and src.obj_id("nope") == 0
+
+
+def test_raw_frames_written_as_raw_image(tmp_path):
+    rgb = np.random.default_rng(1).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    step = W * 3 + 8  # padded rows
+    data = np.zeros((H, step), np.uint8)
+    data[:, : W * 3] = rgb.reshape(H, -1)
+    f = Frame("a", 0, 0, T0, Camera(K1, W, H), "rgb8", data.tobytes(), raw_step=step)
+    write_frames_mcap([f], tmp_path / "raw.mcap")
+    (b,) = McapFrameSource(tmp_path / "raw.mcap")
+    assert (b.image_format, b.raw_step) == ("rgb8", step)
+    np.testing.assert_array_equal(decode_image(b), rgb)
+
+
+ROS_HEADER = """std_msgs/Header header
+"""
+ROS_DEPS = """================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+"""
+ROS_IMAGE = ROS_HEADER + """uint32 height
+uint32 width
+string encoding
+uint8 is_bigendian
+uint32 step
+uint8[] data
+""" + ROS_DEPS
+ROS_COMPRESSED = ROS_HEADER + "string format\nuint8[] data\n" + ROS_DEPS
+ROS_CAMERA_INFO = ROS_HEADER + """uint32 height
+uint32 width
+string distortion_model
+float64[] d
+float64[9] k
+float64[9] r
+float64[12] p
+uint32 binning_x
+uint32 binning_y
+sensor_msgs/RegionOfInterest roi
+""" + ROS_DEPS + """================================================================================
+MSG: sensor_msgs/RegionOfInterest
+uint32 x_offset
+uint32 y_offset
+uint32 height
+uint32 width
+bool do_rectify
+"""
+
+
+def _header(t: int) -> dict:
+    return {"stamp": {"sec": t // 1_000_000_000, "nanosec": t % 1_000_000_000}, "frame_id": "camera_optical"}
+
+
+def test_ros2_image_and_camera_info(tmp_path):
+    rng = np.random.default_rng(2)
+    path = tmp_path / "ros2.mcap"
+    dist = [0.1, -0.05, 0.001, 0.002, 0.01, 0.0, 0.0, 0.0]
+    imgs = []
+    with open(path, "wb") as f:
+        w = Ros2Writer(f)
+        s_img = w.register_msgdef("sensor_msgs/msg/Image", ROS_IMAGE)
+        s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", ROS_CAMERA_INFO)
+        for i in range(3):
+            t = T0 + i * DT
+            w.write_message("/robot/camera/camera_info", s_info, {
+                "header": _header(t), "height": H, "width": W, "distortion_model": "rational_polynomial",
+                "d": dist, "k": K2.reshape(-1).tolist(), "r": np.eye(3).reshape(-1).tolist(),
+                "p": np.hstack([K2, np.zeros((3, 1))]).reshape(-1).tolist(), "binning_x": 0, "binning_y": 0,
+                "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
+            }, log_time=t)
+            bgr = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+            imgs.append(bgr)
+            w.write_message("/robot/camera/image_raw", s_img, {
+                "header": _header(t), "height": H, "width": W, "encoding": "bgr8", "is_bigendian": 0,
+                "step": W * 3, "data": bgr.tobytes(),
+            }, log_time=t + 1000)
+        w.finish()
+    src = McapFrameSource(path)
+    assert (src.image_topic, src.calibration_topic, src.count()) == (
+        "/robot/camera/image_raw", "/robot/camera/camera_info", 3)
+    frames = list(src)
+    for i, fr in enumerate(frames):
+        assert (fr.image_format, fr.raw_step, fr.stamp_ns, fr.im_id) == ("bgr8", W * 3, T0 + i * DT + 1000, i)
+        np.testing.assert_array_equal(decode_image(fr), imgs[i][:, :, ::-1])
+        np.testing.assert_array_equal(fr.camera.K, K2)
+        np.testing.assert_array_equal(fr.camera.dist, dist)
+        assert (fr.camera.distortion_model, fr.camera.width, fr.camera.height) == ("rational_polynomial", W, H)
+
+
+def test_ros2_compressed_image(tmp_path):
+    rng = np.random.default_rng(3)
+    path = tmp_path / "ros2c.mcap"
+    img = _img(rng)
+    with open(path, "wb") as f:
+        w = Ros2Writer(f)
+        s_img = w.register_msgdef("sensor_msgs/msg/CompressedImage", ROS_COMPRESSED)
+        s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", ROS_CAMERA_INFO)
+        w.write_message("/cam/camera_info", s_info, {"header": _header(T0), "height": H, "width": W,
+                        "distortion_model": "plumb_bob", "d": [0.0] * 5, "k": K1.reshape(-1).tolist()},
+                        log_time=T0)
+        w.write_message("/cam/image/compressed", s_img,
+                        {"header": _header(T0), "format": "bgr8; png compressed bgr8", "data": _enc(img)},
+                        log_time=T0)
+        w.finish()
+    (fr,) = McapFrameSource(path)
+    assert fr.image_format == "png"
+    np.testing.assert_array_equal(decode_image(fr), img[:, :, ::-1])
+    np.testing.assert_array_equal(fr.camera.K, K1)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgra8", "mono8", "mono16"])
+def test_foxglove_raw_image_encodings(tmp_path, encoding):
+    rng = np.random.default_rng(4)
+    ch = {"rgb8": 3, "bgra8": 4, "mono8": 1, "mono16": 1}[encoding]
+    dtype = np.uint16 if encoding == "mono16" else np.uint8
+    px = rng.integers(0, np.iinfo(dtype).max, (H, W, ch), dtype=dtype)
+    log_ = Log(tmp_path / "raw.mcap")
+    log_.proto("/cam/calibration", _calib(T0), T0)
+    m = RawImage(frame_id="c", width=W, height=H, encoding=encoding, step=W * ch * px.itemsize, data=px.tobytes())
+    log_.proto("/cam/image", m, T0)
+    log_.close()
+    (fr,) = McapFrameSource(tmp_path / "raw.mcap")
+    rgb = decode_image(fr)
+    if encoding == "rgb8":
+        expected = px
+    elif encoding == "bgra8":
+        expected = px[:, :, 2::-1]
+    else:
+        expected = np.repeat((px / 257).astype(np.uint8) if dtype == np.uint16 else px, 3, axis=2)
+    np.testing.assert_array_equal(rgb, expected)
+
+
+def test_calibration_pairing_and_changes(tmp_path, caplog):
+    rng = np.random.default_rng(5)
+    log_ = Log(tmp_path / "two.mcap")
+    # /left/image's first image comes before its first calibration.
+    for i in range(4):
+        t = T0 + i * DT
+        if i >= 1:
+            log_.proto("/left/calibration", _calib(t, K1 if i < 3 else K2), t)
+            log_.proto("/right/calibration", _calib(t, K2), t)
+        log_.proto("/left/image", _cimg(t, _enc(_img(rng), ".jpg")), t)
+        log_.proto("/right/image", _cimg(t, _enc(_img(rng), ".jpg")), t)
+    log_.close()
+    with caplog.at_level(logging.INFO, logger="batchpose"):
+        left = McapFrameSource(tmp_path / "two.mcap")
+        ks = [f.camera.K for f in left]
+    assert (left.image_topic, left.calibration_topic) == ("/left/image", "/left/calibration")
+    assert "2 image topics (/left/image, /right/image); using /left/image" in caplog.text
+    assert "before the first calibration" in caplog.text
+    for k, want in zip(ks, [K1, K1, K1, K2], strict=True):
+        np.testing.assert_array_equal(k, want)
+    right = McapFrameSource(tmp_path / "two.mcap", image_topic="/right/image")
+    assert right.calibration_topic == "/right/calibration"
+    assert all(np.array_equal(f.camera.K, K2) for f in right)
+
+
+def test_log_without_summary_is_read_in_stream_mode(tmp_path, caplog):
+    datas = _simple_log(tmp_path / "nosum.mcap", summary=False)
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        src = McapFrameSource(tmp_path / "nosum.mcap")
+        frames = list(src)
+    assert not src.indexed and not src.truncated and caplog.text == ""
+    assert src.count() == 4 and [f.image_data for f in frames] == datas
+
+
+# --------------------------------------------------------------------------------------- write-back
+
+
+def _box_glb(extents=(0.1, 0.2, 0.05)) -> bytes:
+    return mesh_to_glb(trimesh.creation.box(extents=extents))
+
+
+def _rows(stamps: list[int], rng: np.random.Generator, fail: set[int]) -> list[dict]:
+    rows = []
+    for i, s in enumerate(stamps):
+        T = _pose(rng)
+        ok = i not in fail
+        rows.append({
+            "frame_id": f"mcap:{s}", "stamp_ns": s, "obj_name": "box", "status": "ok" if ok else "too_few_matches",
+            "reason": "" if ok else "3 matches", "R": T[:3, :3].reshape(-1).tolist() if ok else [np.nan] * 9,
+            "t_m": T[:3, 3].tolist() if ok else [np.nan] * 3, "confidence": 0.8 if ok else 0.0,
+            "n_inliers": 12 if ok else 0, "inliers_px": [10.0, 12.0, 20.5, 30.0] if ok else [],
+        })
+    return rows
+
+
+def _all_messages(path: Path) -> list[tuple]:
+    with open(path, "rb") as f:
+        r = make_reader(f, validate_crcs=True)
+        return [
+            (ch.topic, s.name if s else None, s.encoding if s else None, s.data if s else None,
+             ch.message_encoding, dict(ch.metadata), m.log_time, m.publish_time, m.sequence, m.data)
+            for s, ch, m in r.iter_messages()
+        ]
+
+
+def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_path):
+    rng = np.random.default_rng(6)
+    inp = tmp_path / "in.mcap"
+    log_ = Log(inp, chunk_size=4096, profile="x-test")
+    log_.w.add_metadata("robot", {"name": "r2"})
+    log_.w.add_attachment(T0, T0, "calib.yaml", "text/yaml", b"fx: 1\n")
+    stamps = []
+    for i in range(5):
+        t = T0 + i * DT
+        stamps.append(t)
+        log_.json("/imu", {"a": [0.1 * i, 0, 9.8]}, t - 3)
+        log_.proto("/cam/calibration", _calib(t), t)
+        # header stamp differs from log time: annotations must carry the header stamp
+        log_.proto("/cam/image", _cimg(t - 5_000_000, _enc(_img(rng), ".jpg")), t, seq=i)
+    log_.close()
+    digest = hashlib.sha256(inp.read_bytes()).hexdigest()
+    glb = _box_glb()
+    rows = _rows(stamps, rng, fail={2})
+    out = tmp_path / "poses.mcap"
+    assert write_poses_mcap(out, rows, {"box": glb}, input_mcap=inp) == out
+    assert hashlib.sha256(inp.read_bytes()).hexdigest() == digest
+    assert not (tmp_path / "poses.mcap.tmp").exists()
+
+    before = _all_messages(inp)
+    after = _all_messages(out)
+    kept = [m for m in after if not m[0].startswith("/batchpose/")]
+    assert kept == before  # every input message: topic, schema, times, sequence and bytes unchanged
+    with open(out, "rb") as f:
+        r = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
+        assert r.get_header().profile == "x-test"
+        assert {m.name: m.metadata for m in r.iter_metadata()} == {"robot": {"name": "r2"}}
+        assert [(a.name, a.data) for a in r.iter_attachments()] == [("calib.yaml", b"fx: 1\n")]
+        new = [(ch.topic, m, d) for _, ch, m, d in r.iter_decoded_messages(
+            topics=[SCENE_TOPIC, TF_TOPIC, ANNOTATIONS_TOPIC, "/batchpose/poses/box"])]
+        status = [json.loads(m.data) for _, ch, m in r.iter_messages(topics=[STATUS_TOPIC])]
+
+    (scene,) = [d for t, _, d in new if t == SCENE_TOPIC]
+    (ent,) = scene.entities
+    assert (ent.frame_id, ent.id, ent.frame_locked) == ("object/box", "box", True)
+    assert ent.models[0].media_type == "model/gltf-binary" and ent.models[0].data == glb
+
+    tfs = [(m, d) for t, m, d in new if t == TF_TOPIC]
+    ok_rows = [r_ for r_ in rows if r_["status"] == "ok"]
+    assert len(tfs) == 4 == len([1 for t, _, _ in new if t == "/batchpose/poses/box"])
+    for (m, tf), row in zip(tfs, ok_rows, strict=True):
+        assert (tf.parent_frame_id, tf.child_frame_id) == ("cam_optical", "object/box")
+        assert m.log_time == row["stamp_ns"]
+        assert tf.timestamp.ToNanoseconds() == row["stamp_ns"] - 5_000_000
+        np.testing.assert_allclose([tf.translation.x, tf.translation.y, tf.translation.z], row["t_m"])
+        q = [tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w]
+        np.testing.assert_allclose(Rotation.from_quat(q).as_matrix().reshape(-1), row["R"], atol=1e-12)
+
+    anns = [(m, d) for t, m, d in new if t == ANNOTATIONS_TOPIC]
+    assert [m.log_time for m, _ in anns] == stamps
+    half = np.array([0.05, 0.1, 0.025])
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half
+    for (m, ann), row in zip(anns, rows, strict=True):
+        if row["status"] != "ok":
+            assert not ann.points and "box: too_few_matches (3 matches)" in ann.texts[0].text
+            continue
+        R = np.reshape(row["R"], (3, 3))
+        uv, _ = cv2.projectPoints(corners, cv2.Rodrigues(R)[0], np.array(row["t_m"]), K1,
+                                  np.array([0.1, 0.0, 0.0, 0.0, 0.0]))
+        box = [p for p in ann.points if p.type == 4]  # LINE_LIST
+        (pts,) = [p for p in ann.points if p.type == 1]  # POINTS: inliers
+        assert [(q.x, q.y) for q in pts.points] == [(10.0, 12.0), (20.5, 30.0)]
+        got = np.array([[q.x, q.y] for q in box[0].points])
+        assert got.shape == (24, 2)
+        d = np.linalg.norm(got[:, None] - uv.reshape(1, -1, 2), axis=2).min(axis=1)
+        assert d.max() < 1e-6
+        assert ann.texts[0].timestamp.ToNanoseconds() == m.log_time - 5_000_000
+    assert [s["n_ok"] for s in status] == [1, 1, 0, 1, 1]
+    assert status[2]["objects"][0] == {"obj_name": "box", "status": "too_few_matches", "reason": "3 matches",
+                                       "confidence": 0.0, "n_inliers": 0}
+
+
+def test_write_back_from_folder_frames(tmp_path):
+    frames = _frames(3)
+    rows = _rows([f.stamp_ns for f in frames], np.random.default_rng(7), fail=set())
+    out = tmp_path / "poses.mcap"
+    write_poses_mcap(out, rows, {"box": _box_glb()}, frames=iter(frames))
+    back = list(McapFrameSource(out))
+    assert [b.image_data for b in back] == [f.image_data for f in frames]
+    with open(out, "rb") as f:
+        topics = {ch.topic for _, ch, _ in make_reader(f, validate_crcs=True).iter_messages()}
+    assert {"/camera/image", "/camera/calibration", "/ground_truth/poses", SCENE_TOPIC, TF_TOPIC,
+            ANNOTATIONS_TOPIC, STATUS_TOPIC, "/batchpose/poses/box"} == topics
+
+
+def test_write_back_refuses_to_overwrite_input(tmp_path):
+    _simple_log(tmp_path / "in.mcap")
+    with pytest.raises(ConfigError, match="overwrite the input"):
+        write_poses_mcap(tmp_path / "in.mcap", [], {}, input_mcap=tmp_path / "in.mcap")
+
+
+def test_mesh_to_glb_downscales_texture():
+    mesh = trimesh.creation.box(extents=(0.1, 0.2, 0.3))
+    uv = np.random.default_rng(8).random((len(mesh.vertices), 2))
+    tex = Image.fromarray(np.random.default_rng(9).integers(0, 256, (2048, 2048, 3), dtype=np.uint8))
+    mesh.visual = trimesh.visual.TextureVisuals(uv=uv, image=tex)
+    glb = mesh_to_glb(mesh)
+    back = trimesh.load(io.BytesIO(glb), file_type="glb")
+    (g,) = back.geometry.values()
+    assert max(g.visual.material.baseColorTexture.size) == 1024
+    np.testing.assert_allclose(back.bounds, mesh.bounds)  # model frame kept
+    assert tex.size == (2048, 2048)  # the caller's mesh is untouched
+
+
+# -------------------------------------------------------------------------------------- bad input
+
+
+def test_not_an_mcap(tmp_path):
+    p = tmp_path / "photo.mcap"
+    p.write_bytes(_enc(np.zeros((4, 4, 3), np.uint8)))
+    with pytest.raises(DataError, match=r"photo.mcap: not an MCAP file"):
+        McapFrameSource(p)
+
+
+def test_truncated_without_complete_chunk(tmp_path):
+    p = tmp_path / "cut.mcap"
+    _simple_log(p)
+    p.write_bytes(p.read_bytes()[:200])
+    with pytest.raises(DataError, match=r"cut.mcap: truncated MCAP \(no footer/summary\) and no complete chunk"):
+        McapFrameSource(p)
+
+
+def test_truncated_keeps_complete_chunks_and_warns(tmp_path, caplog):
+    p = tmp_path / "cut.mcap"
+    datas = _simple_log(p, n=12, chunk_size=2000)
+    raw = p.read_bytes()
+    cut = int(len(raw) * 0.6)
+    # Expected: the images in chunks that end before the cut.
+    with open(p, "rb") as f:
+        summary = make_reader(f).get_summary()
+        image_ch = next(c.id for c in summary.channels.values() if c.topic == "/cam/image")
+        expected = 0
+        for ci in summary.chunk_indexes:
+            if ci.chunk_start_offset + ci.chunk_length <= cut:
+                f.seek(ci.chunk_start_offset + 9)
+                chunk = Chunk.read(ReadDataStream(f))
+                expected += sum(isinstance(r, Message) and r.channel_id == image_ch for r in breakup_chunk(chunk))
+    assert 0 < expected < 12
+    p.write_bytes(raw[:cut])
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        src = McapFrameSource(p)
+        frames = list(src)
+    assert src.truncated and len(frames) == expected == src.count()
+    assert [f.image_data for f in frames] == datas[:expected]
+    assert f"({expected} images on /cam/image)" in caplog.text
+    assert "truncated MCAP (no footer/summary)" in caplog.text and "were lost" in caplog.text
+
+
+def test_crc_mismatch(tmp_path):
+    p = tmp_path / "bad.mcap"
+    datas = _simple_log(p)
+    raw = bytearray(p.read_bytes())
+    at = raw.find(datas[1]) + 100  # flip a byte inside the second image, inside its chunk
+    raw[at] ^= 0xFF
+    p.write_bytes(bytes(raw))
+    src = McapFrameSource(p)
+    with pytest.raises(DataError, match=r"bad.mcap: CRC mismatch"):
+        list(src)
+
+
+def test_no_image_topic(tmp_path):
+    p = tmp_path / "imu.mcap"
+    log_ = Log(p)
+    log_.json("/imu", {"a": 1}, T0)
+    log_.proto("/cam/calibration", _calib(T0), T0)
+    log_.close()
+    with pytest.raises(DataError, match=r"imu.mcap: no image topic .*topics: /imu \(test.Thing\)"):
+        McapFrameSource(p)
+
+
+def test_image_topic_without_calibration(tmp_path):
+    p = tmp_path / "nocal.mcap"
+    log_ = Log(p)
+    log_.proto("/cam/image", _cimg(T0, b"\xff\xd8"), T0)
+    log_.proto("/other/calibration", _calib(T0), T0)
+    log_.close()
+    with pytest.raises(CameraError, match=r"nocal.mcap:/cam/image: image topic has no calibration.*/other/calibration"):
+        McapFrameSource(p)
+    assert McapFrameSource(p, calibration_topic="/other/calibration").calibration_topic == "/other/calibration"
+
+
+def test_image_topic_with_non_image_schema(tmp_path):
+    p = tmp_path / "x.mcap"
+    _simple_log(p)
+    with pytest.raises(DataError, match=r"x.mcap:/cam/calibration: schema 'foxglove.CameraCalibration' is not an image"):
+        McapFrameSource(p, image_topic="/cam/calibration")
+    with pytest.raises(DataError, match=r"image topic '/nope' not found \(image topics: /cam/image"):
+        McapFrameSource(p, image_topic="/nope")
+
+
+@pytest.mark.parametrize(
+    ("msg", "match"),
+    [
+        (_cimg(T0, b"RIFF....WEBP", fmt="webp"), "unsupported image encoding 'webp'"),
+        (RawImage(width=W, height=H, encoding="yuv422", step=W * 2, data=bytes(W * H * 2)),
+         "unsupported image encoding 'yuv422'"),
+        (_cimg(T0, b""), r"image is empty \(0 bytes\)"),
+        (RawImage(width=0, height=H, encoding="rgb8", step=0, data=b""), r"image is empty \(0 bytes\)"),
+        (RawImage(width=0, height=H, encoding="rgb8", step=0, data=b"\x00" * 10), "raw rgb8 image of 0x48"),
+    ],
+)
+def test_bad_image_fails_per_frame_naming_file_and_topic(tmp_path, msg, match):
+    p = tmp_path / "enc.mcap"
+    log_ = Log(p)
+    log_.proto("/cam/calibration", _calib(T0), T0)
+    log_.proto("/cam/image", msg, T0)
+    log_.close()
+    (fr,) = McapFrameSource(p)  # reading works; the frame fails when decoded (a bad_image row)
+    with pytest.raises(ImageError, match=rf"enc.mcap:/cam/image: {match}"):
+        decode_image(fr)
