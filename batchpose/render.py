@@ -63,6 +63,11 @@ class Renderer:
                 self._renderer = self._pr.OffscreenRenderer(width, height)
             except Exception as e:
                 platform = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
+                if "OSMesaCreateContextAttribs" in str(e):
+                    raise RenderError(
+                        "PyOpenGL is too old for OSMesa (pyrender pins 3.1.0); run "
+                        "`pip install PyOpenGL==3.1.10` (make setup does) or set PYOPENGL_PLATFORM=egl"
+                    ) from None
                 raise RenderError(
                     f"cannot create an offscreen GL context via {platform} ({e}); install "
                     f"{_GL_PACKAGES.get(platform, 'libosmesa6')}"
