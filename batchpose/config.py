@@ -90,6 +90,8 @@ class MatchConfig:
     prefilter_views: int = 0
     """template_to_query: first vote for views with each frame keypoint's nearest template descriptor and
     test only the keypoints of the ``prefilter_views`` most-voted views (0: test every view)."""
+    prefilter_ratio: float = 0.9
+    """Loose ratio test a frame keypoint must pass to vote for a view (see ``prefilter_views``)."""
     """Keep the pairs of the k templates with the most surviving matches."""
     flann_trees: int = 4
     flann_checks: int = 64

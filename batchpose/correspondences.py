@@ -91,7 +91,10 @@ def _select_top_k(
 def vote_views(
     desc_q: np.ndarray, lib_index, lib: TemplateLibrary, n_views: int, conf: MatchConfig, mask=None
 ) -> np.ndarray:
-    """The ``n_views`` views that most frame keypoints have their nearest template descriptor in.
+    """The ``n_views`` views with the most frame keypoints matched into them.
+
+    Each frame keypoint votes for the view of its nearest template descriptor when it passes a loose
+    ratio test (``conf.prefilter_ratio``) against the nearest descriptor of a different 3D point.
 
     Returns:
         (n_views,) int view ids, most votes first.
@@ -99,8 +102,14 @@ def vote_views(
     q = desc_q if mask is None else desc_q[mask]
     if lib_index is None or len(q) == 0:
         return np.arange(min(n_views, lib.n_views))
-    idx, _ = knn(lib_index, q, 1, conf)
-    votes = np.bincount(lib.view_ids[idx[:, 0]], minlength=lib.n_views)
+    k = min(4, len(lib.desc))
+    idx, dist = knn(lib_index, q, k, conf)
+    p = lib.pts3d[idx]
+    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
+    far[:, 0] = False
+    rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
+    ok = dist[:, 0] < conf.prefilter_ratio * rival
+    votes = np.bincount(lib.view_ids[idx[ok, 0]], minlength=lib.n_views)
     return np.argsort(-votes, kind="stable")[:n_views]
 
 
