@@ -65,14 +65,23 @@ def poses_to_bop(poses: pd.DataFrame, time_per: str = "image") -> pd.DataFrame:
         R = np.asarray(r["R"], dtype=np.float64).reshape(-1)
         t = np.asarray(r["t_m"], dtype=np.float64).reshape(-1)
         if R.size != 9 or t.size != 3 or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
-            log.warning("poses row %s (%s): status ok but no finite pose; left out of the BOP file", idx,
-                        r.get("frame_id", "?"))
+            log.warning(
+                "poses row %s (%s): status ok but no finite pose; left out of the BOP file",
+                idx,
+                r.get("frame_id", "?"),
+            )
             continue
-        rows.append({
-            "scene_id": int(r["scene_id"]), "im_id": int(r["im_id"]), "obj_id": int(r["obj_id"]),
-            "score": float(r["confidence"]), "R": R.tolist(), "t_mm": (t * 1000.0).tolist(),
-            "time_s": float(time_s),
-        })
+        rows.append(
+            {
+                "scene_id": int(r["scene_id"]),
+                "im_id": int(r["im_id"]),
+                "obj_id": int(r["obj_id"]),
+                "score": float(r["confidence"]),
+                "R": R.tolist(),
+                "t_mm": (t * 1000.0).tolist(),
+                "time_s": float(time_s),
+            }
+        )
     table = pd.DataFrame(rows, columns=list(BOP_COLUMNS))
     return _sorted(table)
 
@@ -105,12 +114,23 @@ def write_bop_csv(poses: pd.DataFrame, path: Path | str, time_per: str = "image"
         R = np.asarray(r.R, dtype=np.float64).reshape(-1)
         t = np.asarray(r.t_mm, dtype=np.float64).reshape(-1)
         if R.size != 9 or t.size != 3:
-            raise DataError(f"BOP table row scene {r.scene_id} image {r.im_id} object {r.obj_id}: "
-                            f"R needs 9 numbers and t_mm 3, got {R.size} and {t.size}")
-        lines.append(",".join((
-            str(int(r.scene_id)), str(int(r.im_id)), str(int(r.obj_id)), _num(r.score),
-            " ".join(_num(v) for v in R), " ".join(_num(v) for v in t), _num(r.time_s),
-        )))
+            raise DataError(
+                f"BOP table row scene {r.scene_id} image {r.im_id} object {r.obj_id}: "
+                f"R needs 9 numbers and t_mm 3, got {R.size} and {t.size}"
+            )
+        lines.append(
+            ",".join(
+                (
+                    str(int(r.scene_id)),
+                    str(int(r.im_id)),
+                    str(int(r.obj_id)),
+                    _num(r.score),
+                    " ".join(_num(v) for v in R),
+                    " ".join(_num(v) for v in t),
+                    _num(r.time_s),
+                )
+            )
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_bytes(("\n".join(lines) + "\n").encode("ascii"))
@@ -122,7 +142,9 @@ def write_bop_csv(poses: pd.DataFrame, path: Path | str, time_per: str = "image"
 def _parse_floats(text: str, n: int, field: str, where: str) -> list[float]:
     parts = text.split()
     if len(parts) != n:
-        raise DataError(f"{where}: field {field} needs {n} space-separated numbers, got {len(parts)}: {text!r}")
+        raise DataError(
+            f"{where}: field {field} needs {n} space-separated numbers, got {len(parts)}: {text!r}"
+        )
     try:
         vals = [float(p) for p in parts]
     except ValueError:
@@ -176,15 +198,17 @@ def read_bop_csv(path: Path | str) -> pd.DataFrame:
             raise DataError(f"{where}: expected 7 comma-separated fields ({BOP_HEADER}), got {len(fields)}")
         score = _parse_floats(fields[3], 1, "score", where)[0]
         time_s = _parse_floats(fields[6], 1, "time", where)[0]
-        rows.append({
-            "scene_id": _parse_int(fields[0], "scene_id", where),
-            "im_id": _parse_int(fields[1], "im_id", where),
-            "obj_id": _parse_int(fields[2], "obj_id", where),
-            "score": score,
-            "R": _parse_floats(fields[4], 9, "R", where),
-            "t_mm": _parse_floats(fields[5], 3, "t", where),
-            "time_s": time_s,
-        })
+        rows.append(
+            {
+                "scene_id": _parse_int(fields[0], "scene_id", where),
+                "im_id": _parse_int(fields[1], "im_id", where),
+                "obj_id": _parse_int(fields[2], "obj_id", where),
+                "score": score,
+                "R": _parse_floats(fields[4], 9, "R", where),
+                "t_mm": _parse_floats(fields[5], 3, "t", where),
+                "time_s": time_s,
+            }
+        )
     table = pd.DataFrame(rows, columns=list(BOP_COLUMNS))
     for c in ("scene_id", "im_id", "obj_id"):
         table[c] = table[c].astype(np.int64)
@@ -220,17 +244,34 @@ def bop_to_poses(
         if int(r.obj_id) not in obj_names:
             continue
         key = (int(r.scene_id), int(r.im_id))
-        rows.append({
-            "frame_id": frame_ids.get(key, f"{key[0]:06d}/{key[1]:06d}"),
-            "scene_id": key[0], "im_id": key[1],
-            "obj_name": obj_names[int(r.obj_id)], "obj_id": int(r.obj_id),
-            "status": "ok", "reason": "",
-            "R": list(map(float, r.R)),
-            "t_m": (np.asarray(r.t_mm, dtype=np.float64) / 1000.0).tolist(),
-            "confidence": float(r.score), "time_total_s": float(r.time_s),
-        })
-    cols = ["frame_id", "scene_id", "im_id", "obj_name", "obj_id", "status", "reason", "R", "t_m",
-            "confidence", "time_total_s"]
+        rows.append(
+            {
+                "frame_id": frame_ids.get(key, f"{key[0]:06d}/{key[1]:06d}"),
+                "scene_id": key[0],
+                "im_id": key[1],
+                "obj_name": obj_names[int(r.obj_id)],
+                "obj_id": int(r.obj_id),
+                "status": "ok",
+                "reason": "",
+                "R": list(map(float, r.R)),
+                "t_m": (np.asarray(r.t_mm, dtype=np.float64) / 1000.0).tolist(),
+                "confidence": float(r.score),
+                "time_total_s": float(r.time_s),
+            }
+        )
+    cols = [
+        "frame_id",
+        "scene_id",
+        "im_id",
+        "obj_name",
+        "obj_id",
+        "status",
+        "reason",
+        "R",
+        "t_m",
+        "confidence",
+        "time_total_s",
+    ]
     return pd.DataFrame(rows, columns=cols)
 
 

@@ -45,8 +45,13 @@ def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: in
 
 def library_key(model: ObjectModel, conf: EstimatorConfig, K: np.ndarray, width: int, height: int) -> str:
     return config_hash(
-        model.content_hash, model.scale, conf.render, conf.features,
-        np.round(np.asarray(K, float), 4).tolist(), width, height,
+        model.content_hash,
+        model.scale,
+        conf.render,
+        conf.features,
+        np.round(np.asarray(K, float), 4).tolist(),
+        width,
+        height,
     )
 
 
@@ -62,8 +67,15 @@ def save(lib: TemplateLibrary, out_dir: Path, voxel_m: float) -> Path:
     tmp.mkdir(parents=True)
     lib.views.to_parquet(tmp / "views.parquet", index=False)
     np.savez(
-        tmp / "templates.npz", view_ids=lib.view_ids, xy=lib.xy, desc=lib.desc, pts3d=lib.pts3d, K=lib.K,
-        size=np.array([lib.width, lib.height]), obj_name=np.array(lib.obj_name), key=np.array(lib.key),
+        tmp / "templates.npz",
+        view_ids=lib.view_ids,
+        xy=lib.xy,
+        desc=lib.desc,
+        pts3d=lib.pts3d,
+        K=lib.K,
+        size=np.array([lib.width, lib.height]),
+        obj_name=np.array(lib.obj_name),
+        key=np.array(lib.key),
     )
     keys, counts = model_voxel_grid(lib.pts3d, voxel_m)
     np.savez(tmp / "voxels.npz", keys=keys, counts=counts, voxel_m=np.array(voxel_m))
@@ -80,12 +92,21 @@ def load(lib_dir: Path) -> TemplateLibrary:
         views = pd.read_parquet(lib_dir / "views.parquet")
         with np.load(lib_dir / "templates.npz") as z:
             return TemplateLibrary(
-                obj_name=str(z["obj_name"]), key=str(z["key"]), K=z["K"], width=int(z["size"][0]),
-                height=int(z["size"][1]), views=views, view_ids=z["view_ids"], xy=z["xy"], desc=z["desc"],
+                obj_name=str(z["obj_name"]),
+                key=str(z["key"]),
+                K=z["K"],
+                width=int(z["size"][0]),
+                height=int(z["size"][1]),
+                views=views,
+                view_ids=z["view_ids"],
+                xy=z["xy"],
+                desc=z["desc"],
                 pts3d=z["pts3d"],
             )
     except (OSError, KeyError, ValueError) as e:
-        raise DataError(f"{lib_dir}: template library is unreadable ({e}); delete it or rerun with --overwrite")
+        raise DataError(
+            f"{lib_dir}: template library is unreadable ({e}); delete it or rerun with --overwrite"
+        ) from None
 
 
 def main(
@@ -106,7 +127,7 @@ def main(
         log.info("Skipping %s: template library cached (%s)", model.name, out)
         return out
     if renderer is None:
-        from batchpose.render import get_renderer  # noqa: PLC0415  (only stage that renders)
+        from batchpose.render import get_renderer
 
         renderer = get_renderer()
     t0 = time.perf_counter()
@@ -119,7 +140,10 @@ def main(
         shutil.rmtree(out)
     save(lib, out, conf.weights.voxel_m)
     log.info(
-        "built %s: %d views, %d keypoints in %.1f s", model.name, lib.n_views, len(lib.desc),
+        "built %s: %d views, %d keypoints in %.1f s",
+        model.name,
+        lib.n_views,
+        len(lib.desc),
         time.perf_counter() - t0,
     )
     return out

@@ -85,12 +85,16 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="run directory for all outputs")
     r.add_argument("--cache", help="template cache directory (default ~/.cache/batchpose)")
     r.add_argument(
-        "--set", action="append", metavar="KEY=VALUE",
+        "--set",
+        action="append",
+        metavar="KEY=VALUE",
         help="override a pipeline field, e.g. --set gnc.kappa=3 (repeatable)",
     )
     r.add_argument("--jobs", type=int, default=2, help="parallel workers (default 2)")
     r.add_argument(
-        "--backend", choices=("loky", "dask"), default="loky",
+        "--backend",
+        choices=("loky", "dask"),
+        default="loky",
         help="joblib backend: loky (local processes, default) or dask (a distributed cluster)",
     )
     r.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (with --backend dask)")

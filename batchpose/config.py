@@ -136,6 +136,25 @@ class GncConfig:
 
 
 @dataclass(frozen=True)
+class RefineConfig:
+    """Render-and-match refinement (batchpose's addition; see :mod:`batchpose.refine`)."""
+
+    enabled: bool = True
+    """Refine every pose by matching the frame against the mesh rendered at that pose."""
+    iterations: int = 2
+    """Rounds of render -> SIFT -> guided matching -> PnP."""
+    radius_px: float = 12.0
+    """A rendered keypoint matches only frame keypoints within this many pixels of it."""
+    ratio: float = 0.85
+    """Ratio test among the frame keypoints within the radius."""
+    mu_final_px: float = 1.5
+    """GNC's final scale for the guided pairs (their keypoint noise is real-image noise, not 0.5 px)."""
+    hypotheses: int = 4
+    """Also refine poses solved from each of the best templates alone, up to this many hypotheses in all,
+    and keep the one with the most guided inliers."""
+
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     """Everything that decides a pose, one section per stage."""
 
@@ -152,6 +171,7 @@ class EstimatorConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     weights: WeightsConfig = field(default_factory=WeightsConfig)
     gnc: GncConfig = field(default_factory=GncConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
 
 _CHOICES = {

@@ -78,6 +78,12 @@ def main(src: Path, out: Path, fmt: str, overwrite: bool = False) -> Path:
     n = write_frames_mcap(
         frames, out, obj_ids=source.obj_id, metadata={"format": fmt, "source": str(src.resolve())}
     )
-    log.info("converted %d / %d frames (%s) -> %s (%.1f MB)", n, total, source.describe(), out,
-             out.stat().st_size / 1e6)
+    log.info(
+        "converted %d / %d frames (%s) -> %s (%.1f MB)",
+        n,
+        total,
+        source.describe(),
+        out,
+        out.stat().st_size / 1e6,
+    )
     return out

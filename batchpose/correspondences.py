@@ -36,7 +36,7 @@ class Correspondences:
     def __len__(self) -> int:
         return len(self.x)
 
-    def subset(self, mask: np.ndarray) -> "Correspondences":
+    def subset(self, mask: np.ndarray) -> Correspondences:
         return Correspondences(
             self.x[mask], self.X[mask], self.view_ids[mask], self.templates, self.n_candidates
         )
@@ -53,7 +53,9 @@ def flann_index(desc: np.ndarray, conf: MatchConfig):
 
 def knn(index, queries: np.ndarray, k: int, conf: MatchConfig) -> tuple[np.ndarray, np.ndarray]:
     """k nearest neighbours: indices (N, k) int and L2 distances (N, k) float64."""
-    idx, d2 = index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": conf.flann_checks})
+    idx, d2 = index.knnSearch(
+        np.ascontiguousarray(queries, np.float32), k, params={"checks": conf.flann_checks}
+    )
     return idx.astype(np.int64), np.sqrt(np.maximum(d2.astype(np.float64), 0.0))
 
 
@@ -63,9 +65,7 @@ def _select_top_k(
     """Keep the k views with most matches; one pair per (view, query keypoint), the closest."""
     n_cand = len(q_idx)
     if n_cand == 0:
-        return Correspondences(
-            np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int32), (), 0
-        )
+        return Correspondences(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int32), (), 0)
     views = lib.view_ids[t_idx]
     counts = np.bincount(views, minlength=lib.n_views)
     top = np.argsort(-counts, kind="stable")[:k]

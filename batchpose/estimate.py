@@ -26,6 +26,7 @@ from batchpose.features import detect, make_sift, to_gray
 from batchpose.frames import Camera, Frame, ObjectPose, decode_image
 from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
+from batchpose.refine import refine_pose
 from batchpose.templates import TemplateLibrary
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
@@ -62,6 +63,8 @@ class PoseEstimator:
         conf: estimator config.
         libraries: obj_name -> TemplateLibrary.
         obj_ids: obj_name -> numeric id for records (BOP obj_id); optional.
+        models: obj_name -> ObjectModel, needed (with ``renderer``) for ``refine.enabled``.
+        renderer: a :class:`batchpose.render.Renderer` (or anything with its ``render`` method).
     """
 
     def __init__(
@@ -69,10 +72,14 @@ class PoseEstimator:
         conf: EstimatorConfig,
         libraries: dict[str, TemplateLibrary],
         obj_ids: dict[str, int] | None = None,
+        models: dict | None = None,
+        renderer=None,
     ) -> None:
         self.conf = conf
         self.libraries = libraries
         self.obj_ids = obj_ids or {}
+        self.models = models or {}
+        self.renderer = renderer
         self._sift = make_sift(conf.features)
         self._lib_index: dict[str, object] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -183,9 +190,7 @@ class PoseEstimator:
             )
         else:
             sel = np.ones(len(xy_q), bool) if roi is None else roi
-            corr = match_query_to_template(
-                xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match
-            )
+            corr = match_query_to_template(xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match)
         timings["match"] = time.perf_counter() - t0
         rec = PoseRecord(frame_id, name, "ok", obj_id=self.obj_ids.get(name, 0), timings=timings)
         rec.n_matches = len(corr)
@@ -199,24 +204,85 @@ class PoseEstimator:
         timings["weights"] = time.perf_counter() - t0
         res = solve_pose(corr.x, corr.X, camera.K, camera.dist, w, conf.gnc)
         timings.update(res.timings)
+        x_used = corr.x
+        if self._can_refine(name):
+            t0 = time.perf_counter()
+            refined = self._refine(name, res, corr, camera, xy_q, desc_q)
+            timings["refine"] = time.perf_counter() - t0
+            if refined is not None:
+                res, x_used = refined.result, refined.x
         rec.status, rec.reason = res.status, res.reason
         if not res.status == "ok":
             return rec
         rec.cam_from_model = res.cam_from_model
         rec.n_inliers = res.n_inliers
         rec.median_residual_px = res.median_residual_px
-        rec.inliers_px = corr.x[res.inliers]
+        rec.inliers_px = x_used[res.inliers]
         rec.confidence = confidence(rec.n_inliers, rec.median_residual_px, conf)
         return rec
 
-    def _weights(self, name: str, corr: Correspondences) -> np.ndarray:
+    def _can_refine(self, name: str) -> bool:
+        return self.conf.refine.enabled and self.renderer is not None and name in self.models
+
+    def _refine(self, name, res, corr: Correspondences, camera: Camera, xy_q, desc_q):
+        """Refine the pose (and, with ``refine.hypotheses`` > 1, per-template poses); best guided score."""
+        conf = self.conf
+        model = self.models[name]
+
+        def render(T):
+            return self.renderer.render(
+                model.content_hash,
+                model.mesh,
+                T,
+                camera.K,
+                camera.width,
+                camera.height,
+                "flat",
+                conf.render.znear_m,
+                conf.render.zfar_m,
+            )
+
+        starts = [res.cam_from_model] if res.status == "ok" else []
+        for v in corr.templates:
+            if len(starts) >= conf.refine.hypotheses:
+                break
+            sel = corr.view_ids == v
+            if sel.sum() < conf.gnc.min_inliers:
+                continue
+            sub = solve_pose(corr.x[sel], corr.X[sel], camera.K, camera.dist, None, conf.gnc)
+            if sub.status == "ok":
+                starts.append(sub.cam_from_model)
+        best = None
+        for T in starts:
+            r = refine_pose(
+                T,
+                xy_q,
+                desc_q,
+                camera.K,
+                camera.dist,
+                render,
+                conf.refine,
+                conf.features,
+                conf.gnc,
+                lambda X: self._weights_for(name, X),
+            )
+            if r is not None and (best is None or r.score > best.score):
+                best = r
+        if best is not None and res.status == "ok" and best.score < res.n_inliers:
+            return None  # the guided pairs explain the frame worse than the template pairs
+        return best
+
+    def _weights_for(self, name: str, X: np.ndarray) -> np.ndarray:
         wc = self.conf.weights
         if wc.mode == "none":
-            return np.ones(len(corr))
+            return np.ones(len(X))
         if wc.mode == "correspondences":
-            return geom_weights(corr.X, wc.voxel_m, wc.w_min)
+            return geom_weights(X, wc.voxel_m, wc.w_min)
         keys, counts = self._model_voxels(name)
-        return support_to_weights(model_support(corr.X, keys, counts, wc.voxel_m), wc.w_min)
+        return support_to_weights(model_support(X, keys, counts, wc.voxel_m), wc.w_min)
+
+    def _weights(self, name: str, corr: Correspondences) -> np.ndarray:
+        return self._weights_for(name, corr.X)
 
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:

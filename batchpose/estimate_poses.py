@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import os
 import time
 from collections import Counter
 from pathlib import Path
@@ -25,6 +24,7 @@ from batchpose.config import EstimatorConfig, config_hash, load_estimator_config
 from batchpose.estimate import PoseEstimator
 from batchpose.frames import Frame
 from batchpose.ingest_frames import write_parquet_atomic
+from batchpose.mesh import load_mesh
 
 log = logging.getLogger("batchpose")
 
@@ -41,24 +41,37 @@ def seed_c_rand(seed: int) -> None:
         _libc.srand(ctypes.c_uint(seed))
 
 
-def _estimator(conf_dict: dict, lib_dirs: dict[str, str], obj_ids: dict[str, int]) -> PoseEstimator:
+def _estimator(
+    conf_dict: dict, lib_dirs: dict[str, str], obj_ids: dict[str, int], mesh_paths: dict[str, str]
+) -> PoseEstimator:
     """The worker's estimator, built on first use and kept for the rest of the run."""
-    key = config_hash(conf_dict, lib_dirs)
+    key = config_hash(conf_dict, lib_dirs, mesh_paths)
     if _WORKER.get("key") != key:
+        conf = load_estimator_config(conf_dict)
         libs = {name: build_templates.load(Path(d)) for name, d in lib_dirs.items()}
+        models, renderer = {}, None
+        if conf.refine.enabled:
+            from batchpose.render import get_renderer
+
+            models = {name: load_mesh(Path(p), conf.mesh, name=name) for name, p in mesh_paths.items()}
+            renderer = get_renderer()
         _WORKER["key"] = key
-        _WORKER["estimator"] = PoseEstimator(load_estimator_config(conf_dict), libs, obj_ids)
+        _WORKER["estimator"] = PoseEstimator(conf, libs, obj_ids, models=models, renderer=renderer)
     return _WORKER["estimator"]
 
 
 def estimate_chunk(
-    frames: list[Frame], targets: list[list[str]], conf_dict: dict, lib_dirs: dict[str, str],
+    frames: list[Frame],
+    targets: list[list[str]],
+    conf_dict: dict,
+    lib_dirs: dict[str, str],
     obj_ids: dict[str, int],
+    mesh_paths: dict[str, str],
 ) -> list[dict]:
     """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows."""
-    est = _estimator(conf_dict, lib_dirs, obj_ids)
+    est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
     rows = []
-    for frame, names in zip(frames, targets):
+    for frame, names in zip(frames, targets, strict=False):
         seed_c_rand(0)
         rows.extend(r.to_row() for r in est.estimate_frame(frame, names))
     return rows
@@ -69,7 +82,7 @@ def done_pairs(shard_dir: Path) -> set[tuple[str, str]]:
     done: set[tuple[str, str]] = set()
     for p in sorted(shard_dir.glob("shard-*.parquet")):
         df = pd.read_parquet(p, columns=["frame_id", "obj_name"])
-        done.update(zip(df["frame_id"], df["obj_name"]))
+        done.update(zip(df["frame_id"], df["obj_name"], strict=False))
     return done
 
 
@@ -101,6 +114,7 @@ def main(
     conf_dict: dict,
     lib_dirs: dict[str, Path],
     obj_ids: dict[str, int],
+    mesh_paths: dict[str, Path],
     targets_mode: str,
     run_dir: Path,
     jobs: int = 2,
@@ -115,6 +129,7 @@ def main(
     Args:
         conf_dict: the pipeline config as a plain dict (sent to workers).
         lib_dirs: object name -> template library folder.
+        mesh_paths: object name -> mesh file (workers load it to render for refinement).
         targets_mode: "annotations" or "all" (see :mod:`batchpose.manifest`).
         backend: joblib backend ("loky", or "dask" inside a ``dask.distributed`` client context).
         max_pairs: stop after about this many newly estimated pairs (used to test resuming).
@@ -137,12 +152,13 @@ def main(
         log.info("Resuming: %d (frame, object) pairs already estimated", len(done))
     objects = list(lib_dirs)
     lib_strs = {k: str(v) for k, v in lib_dirs.items()}
+    mesh_strs = {k: str(v) for k, v in mesh_paths.items()}
     n_shards = len(list(shard_dir.glob("shard-*.parquet")))
     total = source.count() if limit is None else min(source.count(), limit)
     t0 = time.perf_counter()
     new_pairs = 0
     tasks = (
-        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids)
+        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs)
         for f, t in _chunks(source, objects, targets_mode, done, chunk_size, limit)
     )
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)
@@ -168,7 +184,11 @@ def main(
     others = ", ".join(f"{n} {s}" for s, n in sorted(counts.items()))
     log.info(
         "estimated %d / %d (frame, object) pairs ok%s; %d new in %.1f s",
-        ok, len(df), f", {others}" if others else "", new_pairs, time.perf_counter() - t0,
+        ok,
+        len(df),
+        f", {others}" if others else "",
+        new_pairs,
+        time.perf_counter() - t0,
     )
     return out
 
@@ -183,7 +203,7 @@ def merge_shards(shard_dir: Path) -> pd.DataFrame:
     """All shard rows, one per (frame, object), in a deterministic order."""
     parts = [pd.read_parquet(p) for p in sorted(Path(shard_dir).glob("shard-*.parquet"))]
     if not parts:
-        from batchpose.poses import PoseRecord  # noqa: PLC0415
+        from batchpose.poses import PoseRecord
 
         return pd.DataFrame(columns=list(PoseRecord("", "", "ok").to_row()))
     df = pd.concat(parts, ignore_index=True)

@@ -21,7 +21,7 @@ def main(
     overwrite: bool = False,
 ) -> Path:
     """Write ``run_dir/poses.mcap``; skipped when it is newer than ``poses_path``. Returns its path."""
-    from batchpose import mcap_io  # noqa: PLC0415  (the one module that imports mcap)
+    from batchpose import mcap_io
 
     out = Path(run_dir) / "poses.mcap"
     if out.is_file() and not overwrite and out.stat().st_mtime >= Path(poses_path).stat().st_mtime:
@@ -31,8 +31,12 @@ def main(
     glbs = {name: mcap_io.mesh_to_glb(m.mesh) for name, m in models.items()}
     if frames_spec.get("format") == "mcap":
         mcap_io.write_poses_mcap(
-            out, poses, glbs, input_mcap=Path(frames_spec["path"]),
-            image_topic=frames_spec.get("image_topic"), calibration_topic=frames_spec.get("calibration_topic"),
+            out,
+            poses,
+            glbs,
+            input_mcap=Path(frames_spec["path"]),
+            image_topic=frames_spec.get("image_topic"),
+            calibration_topic=frames_spec.get("calibration_topic"),
         )
     else:
         wanted = set(poses["frame_id"])

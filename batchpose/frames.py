@@ -46,7 +46,7 @@ class Camera:
     dist: np.ndarray = field(default_factory=lambda: np.zeros(0))
     distortion_model: str = ""
 
-    def validate(self, where: str = "camera") -> "Camera":
+    def validate(self, where: str = "camera") -> Camera:
         """Raise :class:`CameraError` naming ``where`` unless K is a finite, positive-focal 3x3 matrix."""
         K = np.asarray(self.K, dtype=np.float64)
         if K.shape != (3, 3):

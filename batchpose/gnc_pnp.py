@@ -102,14 +102,18 @@ def solve_pose(
     dist = np.zeros(0) if dist is None else np.asarray(dist, np.float64)
     timings = {"ransac": 0.0, "gnc": 0.0, "lm": 0.0}
     if n < max(conf.min_inliers, 4):
-        return PnpResult("too_few_matches", f"{n} correspondences, need {max(conf.min_inliers, 4)}",
-                         timings=timings)
+        return PnpResult(
+            "too_few_matches", f"{n} correspondences, need {max(conf.min_inliers, 4)}", timings=timings
+        )
 
     t0 = time.perf_counter()
     cv2.setRNGSeed(seed)
     try:
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X, x, K, dist,
+            X,
+            x,
+            K,
+            dist,
             iterationsCount=conf.ransac_iterations,
             reprojectionError=conf.ransac_reproj_px,
             confidence=conf.ransac_confidence,
@@ -146,8 +150,14 @@ def solve_pose(
             if prev is not None and np.array_equal(sel, prev):
                 break
             ok, rv, tv = cv2.solvePnP(
-                X[sel], x[sel], K, dist, rvec.copy(), tvec.copy(),
-                useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
+                X[sel],
+                x[sel],
+                K,
+                dist,
+                rvec.copy(),
+                tvec.copy(),
+                useExtrinsicGuess=True,
+                flags=cv2.SOLVEPNP_ITERATIVE,
             )
             iterations += 1
             if not ok or not _valid_pose(tv):
@@ -168,6 +178,4 @@ def solve_pose(
     if not _valid_pose(tvec):
         return PnpResult("pnp_failed", "pose behind the camera after refinement", timings=timings)
     r = reprojection_errors(X, x, rvec, tvec, K, dist)
-    return PnpResult(
-        "ok", "", to_matrix(rvec, tvec), inliers, r, timings, iterations
-    )
+    return PnpResult("ok", "", to_matrix(rvec, tvec), inliers, r, timings, iterations)

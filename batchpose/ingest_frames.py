@@ -20,7 +20,9 @@ def write_parquet_atomic(df: pd.DataFrame, path: Path) -> Path:
     return path
 
 
-def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None) -> Path:
+def main(
+    source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None
+) -> Path:
     """Write ``run_dir/frames.parquet`` and ``run_dir/gt.parquet``; returns the frames index path.
 
     Args:
@@ -41,20 +43,32 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     for i, f in enumerate(tqdm(source, total=total, desc="ingest", unit="frame", leave=False, disable=None)):
         if limit is not None and i >= limit:
             break
-        rows.append({
-            "frame_id": f.frame_id, "scene_id": f.scene_id, "im_id": f.im_id, "stamp_ns": f.stamp_ns,
-            "width": f.camera.width, "height": f.camera.height,
-            "K": np.asarray(f.camera.K, float).reshape(-1).tolist(), "source": f.source,
-        })
+        rows.append(
+            {
+                "frame_id": f.frame_id,
+                "scene_id": f.scene_id,
+                "im_id": f.im_id,
+                "stamp_ns": f.stamp_ns,
+                "width": f.camera.width,
+                "height": f.camera.height,
+                "K": np.asarray(f.camera.K, float).reshape(-1).tolist(),
+                "source": f.source,
+            }
+        )
         for p in f.gt:
             if p.obj_name in wanted:
-                gt_rows.append({
-                    "frame_id": f.frame_id, "obj_name": p.obj_name, "obj_id": source.obj_id(p.obj_name),
-                    "R": np.asarray(p.cam_from_model[:3, :3], float).reshape(-1).tolist(),
-                    "t_m": np.asarray(p.cam_from_model[:3, 3], float).tolist(),
-                })
-    frames = pd.DataFrame(rows, columns=["frame_id", "scene_id", "im_id", "stamp_ns", "width", "height", "K",
-                                         "source"])
+                gt_rows.append(
+                    {
+                        "frame_id": f.frame_id,
+                        "obj_name": p.obj_name,
+                        "obj_id": source.obj_id(p.obj_name),
+                        "R": np.asarray(p.cam_from_model[:3, :3], float).reshape(-1).tolist(),
+                        "t_m": np.asarray(p.cam_from_model[:3, 3], float).tolist(),
+                    }
+                )
+    frames = pd.DataFrame(
+        rows, columns=["frame_id", "scene_id", "im_id", "stamp_ns", "width", "height", "K", "source"]
+    )
     gt = pd.DataFrame(gt_rows, columns=["frame_id", "obj_name", "obj_id", "R", "t_m"])
     write_parquet_atomic(gt, gt_out)
     write_parquet_atomic(frames, out)

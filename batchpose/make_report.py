@@ -220,11 +220,11 @@ def _paper_columns(summary: pd.DataFrame) -> pd.DataFrame:
     """Add the paper's per-object numbers; its mean only when some of our objects are the paper's."""
     known = set(PAPER_GNC_POSE) - {"mean"}
     overlap = bool(known & set(summary["obj_name"]))
-    paper = [PAPER_GNC_POSE.get(n, (np.nan, np.nan)) if (n != "mean" or overlap) else (np.nan, np.nan)
-             for n in summary["obj_name"]]
-    return summary.assign(
-        paper_adds_auc=[p[0] for p in paper], paper_add_auc=[p[1] for p in paper]
-    )
+    paper = [
+        PAPER_GNC_POSE.get(n, (np.nan, np.nan)) if (n != "mean" or overlap) else (np.nan, np.nan)
+        for n in summary["obj_name"]
+    ]
+    return summary.assign(paper_adds_auc=[p[0] for p in paper], paper_add_auc=[p[1] for p in paper])
 
 
 def _instance_table(run: RunData, per_instance: pd.DataFrame) -> pd.DataFrame:
@@ -235,15 +235,21 @@ def _instance_table(run: RunData, per_instance: pd.DataFrame) -> pd.DataFrame:
         for c in ("scene_id", "im_id", "stamp_ns"):
             if c in ids.columns and c not in table.columns:
                 table[c] = table["frame_id"].map(ids[c])
-    diag = [c for c in ("reason", "n_matches", "n_inliers", "median_residual_px", "time_total_s")
-            if c in run.poses.columns]
+    diag = [
+        c
+        for c in ("reason", "n_matches", "n_inliers", "median_residual_px", "time_total_s")
+        if c in run.poses.columns
+    ]
     if diag:
         est = run.poses.assign(_ok=(run.poses["status"] == "ok").astype(int))
         est = est.sort_values(["_ok", "confidence"], ascending=False, kind="stable")
         est = est.drop_duplicates(["frame_id", "obj_name"])[["frame_id", "obj_name", *diag]]
         table = table.merge(est, on=["frame_id", "obj_name"], how="left")
-    first = [c for c in ("frame_id", "scene_id", "im_id", "stamp_ns", "obj_name", "obj_id", "status", "reason")
-             if c in table.columns]
+    first = [
+        c
+        for c in ("frame_id", "scene_id", "im_id", "stamp_ns", "obj_name", "obj_id", "status", "reason")
+        if c in table.columns
+    ]
     return table[first + [c for c in table.columns if c not in first]]
 
 
@@ -275,11 +281,16 @@ def _timing_table(poses: pd.DataFrame) -> pd.DataFrame:
         if col not in poses.columns or len(poses) == 0:
             continue
         v = poses[col].astype(float)
-        rows.append({
-            "stage": stage, "total_s": float(v.sum()), "mean_ms": float(v.mean() * 1e3),
-            "median_ms": float(v.median() * 1e3), "p95_ms": float(v.quantile(0.95) * 1e3),
-            "share_pct": float(v.sum() / total * 100.0) if total > 0 else np.nan,
-        })
+        rows.append(
+            {
+                "stage": stage,
+                "total_s": float(v.sum()),
+                "mean_ms": float(v.mean() * 1e3),
+                "median_ms": float(v.median() * 1e3),
+                "p95_ms": float(v.quantile(0.95) * 1e3),
+                "share_pct": float(v.sum() / total * 100.0) if total > 0 else np.nan,
+            }
+        )
     return pd.DataFrame(rows, columns=["stage", "total_s", "mean_ms", "median_ms", "p95_ms", "share_pct"])
 
 
@@ -335,10 +346,13 @@ def _object_curves(per_instance: pd.DataFrame, column: str) -> list[tuple[str, n
     curves = []
     for name, color in zip(objects, _colors(len(objects)), strict=True):
         d = per_instance.loc[per_instance["obj_name"] == name, column].to_numpy(float)
-        curves.append((f"{name} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.4}))
+        curves.append(
+            (f"{name} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.4})
+        )
     d = per_instance[column].to_numpy(float)
-    curves.append((f"pooled (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d,
-                   {"color": "black", "lw": 2.2, "ls": "--"}))
+    curves.append(
+        (f"pooled (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": "black", "lw": 2.2, "ls": "--"})
+    )
     return curves
 
 
@@ -363,8 +377,10 @@ def _error_figure(per_instance: pd.DataFrame) -> str:
             ax.text(0.5, 0.5, "no ok estimates", ha="center", va="center", transform=ax.transAxes)
         ax.set_xlabel(label)
         ax.set_ylabel("instances" if i == 0 else "")
-    fig.suptitle(f"Error distributions over {len(ok)} ok estimates "
-                 f"({len(per_instance) - len(ok)} failures not shown)", fontsize=10)
+    fig.suptitle(
+        f"Error distributions over {len(ok)} ok estimates ({len(per_instance) - len(ok)} failures not shown)",
+        fontsize=10,
+    )
     fig.tight_layout()
     return _fig_png(fig)
 
@@ -378,8 +394,15 @@ def _confidence_figure(per_instance: pd.DataFrame) -> str:
     objects = sorted(set(per_instance["obj_name"]))
     for name, color in zip(objects, _colors(len(objects)), strict=True):
         g = ok[ok["obj_name"] == name]
-        ax.scatter(g["confidence"], np.maximum(g["adds_m"] * 1000.0, 1e-2), s=18, color=color,
-                   label=name, alpha=0.8, edgecolors="none")
+        ax.scatter(
+            g["confidence"],
+            np.maximum(g["adds_m"] * 1000.0, 1e-2),
+            s=18,
+            color=color,
+            label=name,
+            alpha=0.8,
+            edgecolors="none",
+        )
     title = "Confidence vs ADD-S error (ok estimates)"
     if len(ok) >= 3 and ok["confidence"].nunique() > 1:
         rho = spearmanr(ok["confidence"], ok["adds_m"]).statistic
@@ -401,13 +424,22 @@ def _confidence_hist_figure(poses: pd.DataFrame) -> str:
     ax = fig.add_subplot(1, 1, 1)
     bins = np.linspace(0, 1, 21)
     ok = poses["status"] == "ok"
-    ax.hist([poses.loc[ok, "confidence"].astype(float), poses.loc[~ok, "confidence"].astype(float)],
-            bins=bins, stacked=True, color=["#4c72b0", "#c44e52"],
-            label=[f"ok ({int(ok.sum())})", f"failed ({int((~ok).sum())})"], edgecolor="white")
+    ax.hist(
+        [poses.loc[ok, "confidence"].astype(float), poses.loc[~ok, "confidence"].astype(float)],
+        bins=bins,
+        stacked=True,
+        color=["#4c72b0", "#c44e52"],
+        label=[f"ok ({int(ok.sum())})", f"failed ({int((~ok).sum())})"],
+        edgecolor="white",
+    )
     ax.set_xlabel("confidence")
     ax.set_ylabel("(frame, object) pairs")
-    ax.set_title(f"Confidence distribution, detection rate {ok.mean() * 100:.1f} % ({int(ok.sum())} / {len(ok)})"
-                 if len(ok) else "Confidence distribution (no estimates)", fontsize=10)
+    ax.set_title(
+        f"Confidence distribution, detection rate {ok.mean() * 100:.1f} % ({int(ok.sum())} / {len(ok)})"
+        if len(ok)
+        else "Confidence distribution (no estimates)",
+        fontsize=10,
+    )
     ax.legend(frameon=False, fontsize=8)
     fig.tight_layout()
     return _fig_png(fig)
@@ -424,8 +456,9 @@ def _project(cam_from_model: np.ndarray, pts: np.ndarray, K: np.ndarray, dist: n
     uv = np.full((len(pts), 2), np.nan)
     front = cam[:, 2] > 1e-6
     if front.any():
-        proj, _ = cv2.projectPoints(cam[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K,
-                                    dist if dist.size else None)
+        proj, _ = cv2.projectPoints(
+            cam[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist if dist.size else None
+        )
         uv[front] = proj.reshape(-1, 2)
     return uv
 
@@ -458,9 +491,13 @@ def draw_overlay(
     projected = [(_project(T, sub, K, dist), _project(T, corners, K, dist), c) for T, c in poses]
     h, w = rgb.shape[:2]
     # Crop around what was drawn (with context), so a small object is visible in a thumbnail.
-    all_uv = np.concatenate([np.concatenate([a, b]) for a, b, _ in projected]) if projected else np.zeros((0, 2))
+    all_uv = (
+        np.concatenate([np.concatenate([a, b]) for a, b, _ in projected]) if projected else np.zeros((0, 2))
+    )
     all_uv = all_uv[np.all(np.isfinite(all_uv), axis=1)]
-    all_uv = all_uv[(all_uv[:, 0] > -w) & (all_uv[:, 0] < 2 * w) & (all_uv[:, 1] > -h) & (all_uv[:, 1] < 2 * h)]
+    all_uv = all_uv[
+        (all_uv[:, 0] > -w) & (all_uv[:, 0] < 2 * w) & (all_uv[:, 1] > -h) & (all_uv[:, 1] < 2 * h)
+    ]
     x0, y0, x1, y1 = 0, 0, w, h
     if len(all_uv):
         (ux0, uy0), (ux1, uy1) = all_uv.min(axis=0), all_uv.max(axis=0)
@@ -482,8 +519,15 @@ def draw_overlay(
         thickness = 2 if k == len(projected) - 1 else 4
         for u, v in (uv_pts - (x0, y0)) * scale:
             if np.isfinite(u) and np.isfinite(v):
-                cv2.circle(img, (int(u * (1 << shift)), int(v * (1 << shift))), 1 << shift, color, -1,
-                           cv2.LINE_AA, shift)
+                cv2.circle(
+                    img,
+                    (int(u * (1 << shift)), int(v * (1 << shift))),
+                    1 << shift,
+                    color,
+                    -1,
+                    cv2.LINE_AA,
+                    shift,
+                )
         box = (uv_box - (x0, y0)) * scale
         if np.all(np.isfinite(box)) and np.all(np.abs(box) < 1e5):
             for a, b in _BOX_EDGES:
@@ -565,8 +609,10 @@ def _select_cases(run: RunData, per_instance: pd.DataFrame | None) -> list[_Case
                     reason = est[1].get("reason", "") if est[1] else ""
                     caption = f"{r['status']}" + (f": {reason}" if reason else "") + " (ground truth only)"
                 else:
-                    caption = (f"ADD-S {r['adds_m'] * 1000:.1f} mm, ADD {r['add_m'] * 1000:.1f} mm, "
-                               f"rot {r['rot_err_deg']:.1f}°, conf {r['confidence']:.2f}")
+                    caption = (
+                        f"ADD-S {r['adds_m'] * 1000:.1f} mm, ADD {r['add_m'] * 1000:.1f} mm, "
+                        f"rot {r['rot_err_deg']:.1f}°, conf {r['confidence']:.2f}"
+                    )
                 cases.append(_Case(group, key[0], key[1], caption, est[0], T_gt))
     else:
         ok = run.poses[run.poses["status"] == "ok"].sort_values("confidence", ascending=False, kind="stable")
@@ -607,14 +653,24 @@ def _gallery(run: RunData, per_instance: pd.DataFrame | None) -> tuple[list[dict
             problems.append(str(e))
             continue
         draw = [(T, c) for T, c in ((case.gt, COLOR_GT), (case.est, COLOR_EST)) if T is not None]
-        img = draw_overlay(rgb, np.asarray(frame.camera.K, float), points[case.obj_name], draw,
-                           dist=np.asarray(frame.camera.dist, float))
+        img = draw_overlay(
+            rgb,
+            np.asarray(frame.camera.K, float),
+            points[case.obj_name],
+            draw,
+            dist=np.asarray(frame.camera.dist, float),
+        )
         counters[case.group] = counters.get(case.group, 0) + 1
         slug = case.group.replace(" ", "-")
-        items.append({
-            "id": f"overlay-{slug}-{counters[case.group]}", "group": case.group,
-            "title": f"{case.frame_id} · {case.obj_name}", "caption": case.caption, "b64": _png_b64(img),
-        })
+        items.append(
+            {
+                "id": f"overlay-{slug}-{counters[case.group]}",
+                "group": case.group,
+                "title": f"{case.frame_id} · {case.obj_name}",
+                "caption": case.caption,
+                "b64": _png_b64(img),
+            }
+        )
     if problems:
         note = "; ".join(filter(None, [note, f"{len(problems)} frames could not be decoded ({problems[0]})"]))
     return items, note
@@ -692,11 +748,13 @@ def _results_table(summary: pd.DataFrame) -> str:
     rows = []
     for r in summary.to_dict("records"):
         cls = ' class="agg"' if r["obj_name"] in ("mean", "pooled") else ""
-        label = {"mean": "mean of objects", "pooled": "pooled (all instances)"}.get(r["obj_name"], r["obj_name"])
+        label = {"mean": "mean of objects", "pooled": "pooled (all instances)"}.get(
+            r["obj_name"], r["obj_name"]
+        )
         rows.append(
             f"<tr{cls}><td>{_esc(label)}</td><td>{int(r['n'])}</td><td>{_fmt(r['adds_auc'])}</td>"
-            f"<td>{_fmt(r['add_auc'])}</td><td class=\"paper\">{_fmt(r['paper_adds_auc'])}</td>"
-            f"<td class=\"paper\">{_fmt(r['paper_add_auc'])}</td><td>{_fmt(r['adds_recall_01d'])}</td>"
+            f'<td>{_fmt(r["add_auc"])}</td><td class="paper">{_fmt(r["paper_adds_auc"])}</td>'
+            f'<td class="paper">{_fmt(r["paper_add_auc"])}</td><td>{_fmt(r["adds_recall_01d"])}</td>'
             f"<td>{_fmt(r['add_recall_01d'])}</td><td>{_fmt(r['median_rot_err_deg'])}</td>"
             f"<td>{_fmt(r['median_trans_err_mm'])}</td><td>{int(r['n_ok'])}</td>"
             f"<td>{_esc(_failures_text(r))}</td></tr>"
@@ -709,7 +767,8 @@ def _page(title: str, body: list[str]) -> str:
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
         f"<title>{_esc(title)}</title><style>{_CSS}</style></head>\n<body>\n"
-        + "\n".join(body) + "\n</body></html>\n"
+        + "\n".join(body)
+        + "\n</body></html>\n"
     )
 
 
@@ -720,21 +779,37 @@ def _metadata_sections(run: RunData) -> list[str]:
     if "reason" in run.poses.columns:
         reasons = run.poses.loc[run.poses["status"] != "ok", "reason"].value_counts().head(10)
         if len(reasons):
-            out.append("<h3>Most frequent failure reasons</h3>" + _table(
-                reasons.rename_axis("reason").reset_index(name="count"), "reasons-table"))
+            out.append(
+                "<h3>Most frequent failure reasons</h3>"
+                + _table(reasons.rename_axis("reason").reset_index(name="count"), "reasons-table")
+            )
     timing = _timing_table(run.poses)
     if len(timing):
-        out.append("<h3>Timings by stage (per frame and object)</h3>" + _table(
-            timing, "timing-table",
-            {"total_s": "total (s)", "mean_ms": "mean (ms)", "median_ms": "median (ms)", "p95_ms": "p95 (ms)",
-             "share_pct": "share (%)"}, digits=2))
+        out.append(
+            "<h3>Timings by stage (per frame and object)</h3>"
+            + _table(
+                timing,
+                "timing-table",
+                {
+                    "total_s": "total (s)",
+                    "mean_ms": "mean (ms)",
+                    "median_ms": "median (ms)",
+                    "p95_ms": "p95 (ms)",
+                    "share_pct": "share (%)",
+                },
+                digits=2,
+            )
+        )
     if run.versions:
         vers = pd.DataFrame(
             [(k, v if isinstance(v, str) else json.dumps(v)) for k, v in run.versions.items()],
-            columns=["package", "version"])
+            columns=["package", "version"],
+        )
         out.append("<h3>Versions</h3>" + _table(vers, "versions-table"))
     if run.manifest is not None:
-        out.append("<h3>Data manifest</h3><pre>" + _esc(yaml.safe_dump(run.manifest, sort_keys=False)) + "</pre>")
+        out.append(
+            "<h3>Data manifest</h3><pre>" + _esc(yaml.safe_dump(run.manifest, sort_keys=False)) + "</pre>"
+        )
     if run.config_text:
         out.append("<h3>Resolved config</h3><pre>" + _esc(run.config_text) + "</pre>")
     for note in run.notes:
@@ -744,21 +819,26 @@ def _metadata_sections(run: RunData) -> list[str]:
 
 
 def _gallery_section(items: list[dict], note: str, with_gt: bool) -> list[str]:
-    legend = (f'<span class="swatch" style="background:rgb{COLOR_EST}"></span>estimate'
-              + (f'<span class="swatch" style="background:rgb{COLOR_GT}"></span>ground truth' if with_gt else ""))
-    out = ['<section id="gallery"><h2>Overlays</h2>',
-           f'<p class="note">Model points and 3D bounding box drawn at the pose: {legend}.</p>']
+    legend = f'<span class="swatch" style="background:rgb{COLOR_EST}"></span>estimate' + (
+        f'<span class="swatch" style="background:rgb{COLOR_GT}"></span>ground truth' if with_gt else ""
+    )
+    out = [
+        '<section id="gallery"><h2>Overlays</h2>',
+        f'<p class="note">Model points and 3D bounding box drawn at the pose: {legend}.</p>',
+    ]
     if note:
         out.append(f'<p class="warn" id="gallery-note">Gallery: {_esc(note)}</p>')
     groups: dict[str, list[dict]] = {}
     for it in items:
         groups.setdefault(it["group"], []).append(it)
     for group, its in groups.items():
-        out.append(f"<h3>{_esc(group.capitalize())}</h3><div class=\"gallery\">")
+        out.append(f'<h3>{_esc(group.capitalize())}</h3><div class="gallery">')
         for it in its:
             out.append(
-                "<figure>" + _img(it["id"], f"{group} case: {it['title']}", it["b64"], cls="overlay")
-                + f"<figcaption><b>{_esc(it['title'])}</b><br>{_esc(it['caption'])}</figcaption></figure>")
+                "<figure>"
+                + _img(it["id"], f"{group} case: {it['title']}", it["b64"], cls="overlay")
+                + f"<figcaption><b>{_esc(it['title'])}</b><br>{_esc(it['caption'])}</figcaption></figure>"
+            )
         out.append("</div>")
     out.append("</section>")
     return out
@@ -779,7 +859,8 @@ def _write_csv(df: pd.DataFrame, path: Path) -> None:
 
 def _score(run: RunData) -> tuple[pd.DataFrame, pd.DataFrame]:
     points, diameters = load_model_points(
-        run.objects, run.gt["obj_name"], where=str(run.run_dir / "objects.json"))
+        run.objects, run.gt["obj_name"], where=str(run.run_dir / "objects.json")
+    )
     per_instance, summary = metrics.score(run.poses, run.gt, points, diameters)
     return per_instance, _paper_columns(summary)
 
@@ -818,8 +899,10 @@ def main(run_dir: Path, overwrite: bool = False) -> Path:
     n_ok = int((run.poses["status"] == "ok").sum())
     body = [
         f"<h1>{_esc(title)}</h1>",
-        (f'<p class="meta">{_esc(run_dir.resolve())} · {n_frames} frames · {len(run.poses)} (frame, object) '
-        f"pairs, {n_ok} ok · generated {_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%d %H:%M UTC')}</p>"),
+        (
+            f'<p class="meta">{_esc(run_dir.resolve())} · {n_frames} frames · {len(run.poses)} (frame, object) '
+            f"pairs, {n_ok} ok · generated {_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%d %H:%M UTC')}</p>"
+        ),
     ]
     if run.has_gt:
         per_instance, summary = _score(run)
@@ -828,24 +911,41 @@ def main(run_dir: Path, overwrite: bool = False) -> Path:
         means = " · ".join(f"{k} {a:.1f} / {b:.1f}" for k, (a, b) in PAPER_MEANS.items())
         body += [
             '<section id="results"><h2>Results</h2>',
-            ('<p class="note">AUC: area under the accuracy–threshold curve up to 10 cm, YCB-Video toolbox '
-            "definition (a missing or failed estimate counts as a failure; with few instances an object's "
-            "AUC is biased up by about 100/n). 0.1d: 10 % of the object diameter.</p>"),
+            (
+                '<p class="note">AUC: area under the accuracy–threshold curve up to 10 cm, YCB-Video toolbox '
+                "definition (a missing or failed estimate counts as a failure; with few instances an object's "
+                "AUC is biased up by about 100/n). 0.1d: 10 % of the object diameter.</p>"
+            ),
             _results_table(summary),
-            (f'<p class="note">† GNC-Pose\'s numbers {_esc(PAPER_NOTE)}. Paper means, ADD-S AUC / ADD AUC: '
-            f"{_esc(means)}.</p></section>"),
+            (
+                f'<p class="note">† GNC-Pose\'s numbers {_esc(PAPER_NOTE)}. Paper means, ADD-S AUC / ADD AUC: '
+                f"{_esc(means)}.</p></section>"
+            ),
             '<section id="curves"><h2>Accuracy–threshold curves</h2><div class="plots">',
-            _img("plot-curve-adds", "ADD-S accuracy vs threshold, per object and pooled",
-                 _curve_figure(_object_curves(per_instance, "adds_m"), "ADD-S")),
-            _img("plot-curve-add", "ADD accuracy vs threshold, per object and pooled",
-                 _curve_figure(_object_curves(per_instance, "add_m"), "ADD")),
+            _img(
+                "plot-curve-adds",
+                "ADD-S accuracy vs threshold, per object and pooled",
+                _curve_figure(_object_curves(per_instance, "adds_m"), "ADD-S"),
+            ),
+            _img(
+                "plot-curve-add",
+                "ADD accuracy vs threshold, per object and pooled",
+                _curve_figure(_object_curves(per_instance, "add_m"), "ADD"),
+            ),
             "</div></section>",
             '<section id="errors"><h2>Error distributions</h2>',
-            _img("plot-errors", "Histograms of ADD-S, ADD, rotation and translation error",
-                 _error_figure(per_instance)),
+            _img(
+                "plot-errors",
+                "Histograms of ADD-S, ADD, rotation and translation error",
+                _error_figure(per_instance),
+            ),
             "</section>",
             '<section id="confidence"><h2>Confidence vs error</h2>',
-            _img("plot-confidence", "Scatter of confidence against ADD-S error", _confidence_figure(per_instance)),
+            _img(
+                "plot-confidence",
+                "Scatter of confidence against ADD-S error",
+                _confidence_figure(per_instance),
+            ),
             "</section>",
         ]
         items, note = _gallery(run, per_instance)
@@ -854,21 +954,59 @@ def main(run_dir: Path, overwrite: bool = False) -> Path:
     else:
         summary = _detection_summary(run.poses)
         _write_csv(summary, report_dir / "summary.csv")
-        cols = [c for c in ("frame_id", "scene_id", "im_id", "stamp_ns", "obj_name", "obj_id", "status",
-                            "reason", "confidence", "n_matches", "n_inliers", "median_residual_px",
-                            "time_total_s") if c in run.poses.columns]
+        cols = [
+            c
+            for c in (
+                "frame_id",
+                "scene_id",
+                "im_id",
+                "stamp_ns",
+                "obj_name",
+                "obj_id",
+                "status",
+                "reason",
+                "confidence",
+                "n_matches",
+                "n_inliers",
+                "median_residual_px",
+                "time_total_s",
+            )
+            if c in run.poses.columns
+        ]
         _write_csv(run.poses[cols], report_dir / "frames.csv")
         body += [
             '<section id="results"><h2>Detections (no ground truth)</h2>',
-            ('<p class="note">This run has no ground truth, so accuracy cannot be measured; the detection '
-            "rate is ok / all (frame, object) pairs.</p>"),
-            _table(summary[["obj_name", "n", "n_ok", "detection_rate_pct", "median_confidence",
-                            *[f"n_{s}" for s in STATUSES[1:]]]], "results-table",
-                   {"obj_name": "Object", "n_ok": "ok", "detection_rate_pct": "detection rate (%)",
-                    "median_confidence": "median confidence (ok)"}, digits=2),
+            (
+                '<p class="note">This run has no ground truth, so accuracy cannot be measured; the detection '
+                "rate is ok / all (frame, object) pairs.</p>"
+            ),
+            _table(
+                summary[
+                    [
+                        "obj_name",
+                        "n",
+                        "n_ok",
+                        "detection_rate_pct",
+                        "median_confidence",
+                        *[f"n_{s}" for s in STATUSES[1:]],
+                    ]
+                ],
+                "results-table",
+                {
+                    "obj_name": "Object",
+                    "n_ok": "ok",
+                    "detection_rate_pct": "detection rate (%)",
+                    "median_confidence": "median confidence (ok)",
+                },
+                digits=2,
+            ),
             "</section>",
             '<section id="confidence"><h2>Confidence</h2>',
-            _img("plot-confidence", "Histogram of confidence, ok and failed", _confidence_hist_figure(run.poses)),
+            _img(
+                "plot-confidence",
+                "Histogram of confidence, ok and failed",
+                _confidence_hist_figure(run.poses),
+            ),
             "</section>",
         ]
         items, note = _gallery(run, None)
@@ -916,58 +1054,104 @@ def compare(run_dirs: list[Path], out: Path) -> Path:
         ok = run.poses["status"] == "ok"
         n_frames = len(run.frames) if run.frames is not None else run.poses["frame_id"].nunique()
         row: dict[str, Any] = {
-            "run": label, "run_dir": str(Path(run_dir).resolve()), "n_frames": n_frames,
-            "n_pairs": len(run.poses), "n_ok": int(ok.sum()),
+            "run": label,
+            "run_dir": str(Path(run_dir).resolve()),
+            "n_frames": n_frames,
+            "n_pairs": len(run.poses),
+            "n_ok": int(ok.sum()),
             "detection_rate_pct": float(ok.mean() * 100.0) if len(ok) else np.nan,
             "time_per_pair_s": float(run.poses["time_total_s"].mean())
-            if "time_total_s" in run.poses.columns and len(run.poses) else np.nan,
+            if "time_total_s" in run.poses.columns and len(run.poses)
+            else np.nan,
         }
         if run.has_gt:
             per_instance, summary = _score(run)
             s = summary.set_index("obj_name")
-            row.update({
-                "n_instances": int(s.loc["pooled", "n"]),
-                "adds_auc_mean": s.loc["mean", "adds_auc"], "add_auc_mean": s.loc["mean", "add_auc"],
-                "adds_auc_pooled": s.loc["pooled", "adds_auc"], "add_auc_pooled": s.loc["pooled", "add_auc"],
-                "adds_recall_01d": s.loc["pooled", "adds_recall_01d"],
-                "add_recall_01d": s.loc["pooled", "add_recall_01d"],
-                "median_rot_err_deg": s.loc["pooled", "median_rot_err_deg"],
-                "median_trans_err_mm": s.loc["pooled", "median_trans_err_mm"],
-            })
+            row.update(
+                {
+                    "n_instances": int(s.loc["pooled", "n"]),
+                    "adds_auc_mean": s.loc["mean", "adds_auc"],
+                    "add_auc_mean": s.loc["mean", "add_auc"],
+                    "adds_auc_pooled": s.loc["pooled", "adds_auc"],
+                    "add_auc_pooled": s.loc["pooled", "add_auc"],
+                    "adds_recall_01d": s.loc["pooled", "adds_recall_01d"],
+                    "add_recall_01d": s.loc["pooled", "add_recall_01d"],
+                    "median_rot_err_deg": s.loc["pooled", "median_rot_err_deg"],
+                    "median_trans_err_mm": s.loc["pooled", "median_trans_err_mm"],
+                }
+            )
             for obj in s.index.drop(["mean", "pooled"]):
                 row[f"adds_auc[{obj}]"] = s.loc[obj, "adds_auc"]
                 row[f"add_auc[{obj}]"] = s.loc[obj, "add_auc"]
             for col, lines in curves.items():
                 d = per_instance[col].to_numpy(float)
-                lines.append((f"{label} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d,
-                                    {"color": color, "lw": 1.8}))
+                lines.append(
+                    (f"{label} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.8})
+                )
         else:
             notes.append(f"{label}: no ground truth, so no accuracy and no curve")
         rows.append(row)
     table = pd.DataFrame(rows)
     out.mkdir(parents=True, exist_ok=True)
     _write_csv(table, out / "compare.csv")
-    show = [c for c in ("run", "n_frames", "n_pairs", "n_ok", "detection_rate_pct", "adds_auc_mean",
-                        "add_auc_mean", "adds_auc_pooled", "add_auc_pooled", "adds_recall_01d", "add_recall_01d",
-                        "median_rot_err_deg", "median_trans_err_mm", "time_per_pair_s") if c in table.columns]
-    heads = {"detection_rate_pct": "detection (%)", "adds_auc_mean": "ADD-S AUC (mean)",
-             "add_auc_mean": "ADD AUC (mean)", "adds_auc_pooled": "ADD-S AUC (pooled)",
-             "add_auc_pooled": "ADD AUC (pooled)", "adds_recall_01d": "ADD-S < 0.1d (%)",
-             "add_recall_01d": "ADD < 0.1d (%)", "median_rot_err_deg": "median rot (°)",
-             "median_trans_err_mm": "median trans (mm)", "time_per_pair_s": "s / (frame, object)"}
-    body = ["<h1>batchpose: comparison of runs</h1>",
-            (f'<p class="meta">{len(run_dirs)} runs · generated '
-            f"{_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%d %H:%M UTC')}</p>"),
-            '<section id="results"><h2>Runs</h2>', _table(table[show], "compare-table", heads, digits=2)]
+    show = [
+        c
+        for c in (
+            "run",
+            "n_frames",
+            "n_pairs",
+            "n_ok",
+            "detection_rate_pct",
+            "adds_auc_mean",
+            "add_auc_mean",
+            "adds_auc_pooled",
+            "add_auc_pooled",
+            "adds_recall_01d",
+            "add_recall_01d",
+            "median_rot_err_deg",
+            "median_trans_err_mm",
+            "time_per_pair_s",
+        )
+        if c in table.columns
+    ]
+    heads = {
+        "detection_rate_pct": "detection (%)",
+        "adds_auc_mean": "ADD-S AUC (mean)",
+        "add_auc_mean": "ADD AUC (mean)",
+        "adds_auc_pooled": "ADD-S AUC (pooled)",
+        "add_auc_pooled": "ADD AUC (pooled)",
+        "adds_recall_01d": "ADD-S < 0.1d (%)",
+        "add_recall_01d": "ADD < 0.1d (%)",
+        "median_rot_err_deg": "median rot (°)",
+        "median_trans_err_mm": "median trans (mm)",
+        "time_per_pair_s": "s / (frame, object)",
+    }
+    body = [
+        "<h1>batchpose: comparison of runs</h1>",
+        (
+            f'<p class="meta">{len(run_dirs)} runs · generated '
+            f"{_dt.datetime.now(_dt.UTC).strftime('%Y-%m-%d %H:%M UTC')}</p>"
+        ),
+        '<section id="results"><h2>Runs</h2>',
+        _table(table[show], "compare-table", heads, digits=2),
+    ]
     body += [f'<p class="warn">{_esc(n)}</p>' for n in notes]
     body.append("</section>")
     if curves["adds_m"]:
-        body += ['<section id="curves"><h2>Accuracy–threshold curves (pooled instances)</h2><div class="plots">',
-                 _img("plot-compare-adds", "ADD-S accuracy vs threshold, one curve per run",
-                      _curve_figure(curves["adds_m"], "ADD-S")),
-                 _img("plot-compare-add", "ADD accuracy vs threshold, one curve per run",
-                      _curve_figure(curves["add_m"], "ADD")),
-                 "</div></section>"]
+        body += [
+            '<section id="curves"><h2>Accuracy–threshold curves (pooled instances)</h2><div class="plots">',
+            _img(
+                "plot-compare-adds",
+                "ADD-S accuracy vs threshold, one curve per run",
+                _curve_figure(curves["adds_m"], "ADD-S"),
+            ),
+            _img(
+                "plot-compare-add",
+                "ADD accuracy vs threshold, one curve per run",
+                _curve_figure(curves["add_m"], "ADD"),
+            ),
+            "</div></section>",
+        ]
     _write_atomic(out / "index.html", _page("batchpose: comparison of runs", body))
     log.info("compare: %d runs -> %s", len(run_dirs), out / "index.html")
     return out

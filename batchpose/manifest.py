@@ -53,8 +53,12 @@ class Manifest:
         return {
             "name": self.name,
             "frames": self.frames,
-            "models": {"objects": {o.name: {"mesh": str(o.mesh), "points": str(o.points) if o.points else None}
-                                   for o in self.objects}},
+            "models": {
+                "objects": {
+                    o.name: {"mesh": str(o.mesh), "points": str(o.points) if o.points else None}
+                    for o in self.objects
+                }
+            },
             "objects": [o.name for o in self.objects],
             "targets": self.targets,
         }
@@ -67,7 +71,9 @@ def load_manifest(path: Path) -> Manifest:
     base = path.parent
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
-        raise ConfigError(f"{path}: unknown key(s) {', '.join(unknown)} (expected: {', '.join(sorted(_TOP_KEYS))})")
+        raise ConfigError(
+            f"{path}: unknown key(s) {', '.join(unknown)} (expected: {', '.join(sorted(_TOP_KEYS))})"
+        )
     for key in ("frames", "models", "objects"):
         if key not in data:
             raise ConfigError(f"{path}: missing key {key!r}")
@@ -83,7 +89,9 @@ def load_manifest(path: Path) -> Manifest:
         raise ConfigError(f"{path}: models must be a mapping with root, mesh, points")
     unknown = sorted(set(models) - _MODEL_KEYS)
     if unknown:
-        raise ConfigError(f"{path}: models: unknown key(s) {', '.join(unknown)} (expected root, mesh, points)")
+        raise ConfigError(
+            f"{path}: models: unknown key(s) {', '.join(unknown)} (expected root, mesh, points)"
+        )
     root = (base / models.get("root", ".")).resolve()
     mesh_tpl = models.get("mesh", "{name}/textured.obj")
     points_tpl = models.get("points")

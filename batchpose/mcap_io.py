@@ -176,8 +176,16 @@ _BOX_EDGES = np.array(
     [[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]]
 )
 _PALETTE = [
-    (0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74),
-    (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.5, 0.5, 0.5), (0.74, 0.74, 0.13), (0.09, 0.75, 0.81),
+    (0.12, 0.47, 0.71),
+    (1.0, 0.5, 0.05),
+    (0.17, 0.63, 0.17),
+    (0.84, 0.15, 0.16),
+    (0.58, 0.4, 0.74),
+    (0.55, 0.34, 0.29),
+    (0.89, 0.47, 0.76),
+    (0.5, 0.5, 0.5),
+    (0.74, 0.74, 0.13),
+    (0.09, 0.75, 0.81),
 ]
 #: Errors the mcap reader raises on bad bytes (CRCValidationError is a ValueError).
 _READ_ERRORS = (McapError, ValueError, struct.error, ZstdError, RuntimeError)
@@ -249,7 +257,9 @@ def _to_calib(msg: Any) -> _Calib:
     # A malformed K becomes NaN so that the frame fails as bad_camera instead of stopping the batch.
     K = K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan)
     dist = np.asarray(list(_field(msg, "D", "d")), dtype=np.float64).reshape(-1)
-    return _Calib(K=K, width=int(msg.width), height=int(msg.height), dist=dist, model=str(msg.distortion_model))
+    return _Calib(
+        K=K, width=int(msg.width), height=int(msg.height), dist=dist, model=str(msg.distortion_model)
+    )
 
 
 def _to_image(msg: Any, kind: str) -> _Image:
@@ -258,8 +268,14 @@ def _to_image(msg: Any, kind: str) -> _Image:
         fmt = _compressed_format(str(msg.format))
         return _Image(fmt, data, 0, 0, 0, _frame_id_of(msg), _stamp_ns(msg), raw=False)
     return _Image(
-        str(msg.encoding), data, int(msg.width), int(msg.height), int(msg.step), _frame_id_of(msg),
-        _stamp_ns(msg), raw=True,
+        str(msg.encoding),
+        data,
+        int(msg.width),
+        int(msg.height),
+        int(msg.step),
+        _frame_id_of(msg),
+        _stamp_ns(msg),
+        raw=True,
     )
 
 
@@ -308,7 +324,9 @@ class McapFrameSource(FrameSource):
         CameraError: no calibration topic for the image topic, or it has no messages.
     """
 
-    def __init__(self, path: Path, image_topic: str | None = None, calibration_topic: str | None = None) -> None:
+    def __init__(
+        self, path: Path, image_topic: str | None = None, calibration_topic: str | None = None
+    ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise DataError(f"{self.path}: MCAP file does not exist")
@@ -347,7 +365,11 @@ class McapFrameSource(FrameSource):
                 "%s: truncated MCAP (no footer/summary): read %d messages (%d images on %s) from complete "
                 "chunks; the last %d bytes (an incomplete record) were lost, holding an unknown number of "
                 "messages",
-                self.path, self._n_messages, n_img, self.image_topic, self._lost_bytes,
+                self.path,
+                self._n_messages,
+                n_img,
+                self.image_topic,
+                self._lost_bytes,
             )
 
     # -- opening
@@ -470,7 +492,10 @@ class McapFrameSource(FrameSource):
         if len(images) > 1:
             log.info(
                 "%s: %d image topics (%s); using %s (set image_topic to choose another)",
-                self.path, len(images), ", ".join(images), chosen,
+                self.path,
+                len(images),
+                ", ".join(images),
+                chosen,
             )
         return chosen
 
@@ -501,7 +526,9 @@ class McapFrameSource(FrameSource):
 
     # -- raw access
 
-    def iter_raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    def iter_raw(
+        self, topics: Iterable[str] | None = None
+    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
         """Yield (schema, channel, message) records, undecoded: log-time order when the file is indexed,
         file order otherwise (stopping silently where a truncated file breaks off).
 
@@ -522,12 +549,18 @@ class McapFrameSource(FrameSource):
                 except StopIteration:
                     return
                 except CRCValidationError as e:
-                    raise DataError(f"{self.path}: CRC mismatch, the file is corrupt ({one_line(e)})") from None
+                    raise DataError(
+                        f"{self.path}: CRC mismatch, the file is corrupt ({one_line(e)})"
+                    ) from None
                 except _READ_ERRORS as e:
-                    raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
+                    raise DataError(
+                        f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})"
+                    ) from None
                 yield item
 
-    def _iter_stream(self, f: Any, wanted: set[str] | None) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    def _iter_stream(
+        self, f: Any, wanted: set[str] | None
+    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         try:
@@ -562,7 +595,9 @@ class McapFrameSource(FrameSource):
                 if not self.truncated:
                     raise DataError(f"{self.path}: unexpected end of file") from None
             except _READ_ERRORS as e:
-                raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
+                raise DataError(
+                    f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})"
+                ) from None
 
     @property
     def channels(self) -> dict[int, Channel]:
@@ -645,7 +680,8 @@ class McapFrameSource(FrameSource):
             if cal is None and not warned_early:
                 log.warning(
                     "%s: images logged before the first calibration on %s use that first calibration",
-                    source, self.calibration_topic,
+                    source,
+                    self.calibration_topic,
                 )
                 warned_early = True
             c = cal or first
@@ -656,7 +692,11 @@ class McapFrameSource(FrameSource):
                 if size is not None and size != (c.width, c.height):
                     log.warning(
                         "%s: image is %dx%d but the calibration on %s says %dx%d",
-                        source, *size, self.calibration_topic, c.width, c.height,
+                        source,
+                        *size,
+                        self.calibration_topic,
+                        c.width,
+                        c.height,
                     )
                     warned_size = True
             gt = gts.pop(t, None)
@@ -730,7 +770,9 @@ class _Out:
             cid = self._channel_ids[topic] = self.w.register_channel(topic, "protobuf", sid)
             self.topics.add(topic)
         self.w.add_message(
-            cid, log_time=int(log_time), data=msg.SerializeToString(),
+            cid,
+            log_time=int(log_time),
+            data=msg.SerializeToString(),
             publish_time=int(log_time if publish_time is None else publish_time),
         )
 
@@ -746,7 +788,9 @@ class _Out:
             cid = self._channel_ids[topic] = self.w.register_channel(topic, "json", sid)
             self.topics.add(topic)
         self.w.add_message(
-            cid, log_time=int(log_time), data=json.dumps(obj, separators=(",", ":")).encode(),
+            cid,
+            log_time=int(log_time),
+            data=json.dumps(obj, separators=(",", ":")).encode(),
             publish_time=int(log_time),
         )
 
@@ -761,29 +805,38 @@ def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: l
     K = np.asarray(cam.K, dtype=np.float64).reshape(3, 3)
     P = np.hstack([K, np.zeros((3, 1))])
     cal = CameraCalibration(
-        frame_id=CAMERA_FRAME_ID, width=int(cam.width), height=int(cam.height),
+        frame_id=CAMERA_FRAME_ID,
+        width=int(cam.width),
+        height=int(cam.height),
         distortion_model=cam.distortion_model or ("plumb_bob" if cam.dist.size else ""),
-        D=np.asarray(cam.dist, dtype=float).tolist(), K=K.reshape(-1).tolist(),
-        R=np.eye(3).reshape(-1).tolist(), P=P.reshape(-1).tolist(),
+        D=np.asarray(cam.dist, dtype=float).tolist(),
+        K=K.reshape(-1).tolist(),
+        R=np.eye(3).reshape(-1).tolist(),
+        P=P.reshape(-1).tolist(),
     )
     _timestamp(cal.timestamp, t)
     out.proto(CALIBRATION_TOPIC, cal, t)
     if frame.gt:
-        out.json(GT_TOPIC, GT_JSON_SCHEMA, {
-            "stamp_ns": t,
-            "frame_id": CAMERA_FRAME_ID,
-            "source_frame_id": frame.frame_id,
-            "scene_id": int(frame.scene_id),
-            "im_id": int(frame.im_id),
-            "objects": [
-                {
-                    "obj_name": g.obj_name,
-                    "obj_id": int(obj_ids(g.obj_name)),
-                    "cam_from_model": np.asarray(g.cam_from_model, dtype=float).reshape(-1).tolist(),
-                }
-                for g in frame.gt
-            ],
-        }, t)
+        out.json(
+            GT_TOPIC,
+            GT_JSON_SCHEMA,
+            {
+                "stamp_ns": t,
+                "frame_id": CAMERA_FRAME_ID,
+                "source_frame_id": frame.frame_id,
+                "scene_id": int(frame.scene_id),
+                "im_id": int(frame.im_id),
+                "objects": [
+                    {
+                        "obj_name": g.obj_name,
+                        "obj_id": int(obj_ids(g.obj_name)),
+                        "cam_from_model": np.asarray(g.cam_from_model, dtype=float).reshape(-1).tolist(),
+                    }
+                    for g in frame.gt
+                ],
+            },
+            t,
+        )
     fmt = frame.image_format.lower()
     this_kind = "raw" if frame.image_format in RAW_ENCODINGS else "compressed"
     if not kind:
@@ -799,8 +852,12 @@ def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: l
         )
     else:
         img = RawImage(
-            frame_id=CAMERA_FRAME_ID, width=int(cam.width), height=int(cam.height),
-            encoding=frame.image_format, step=int(frame.raw_step), data=frame.image_data,
+            frame_id=CAMERA_FRAME_ID,
+            width=int(cam.width),
+            height=int(cam.height),
+            encoding=frame.image_format,
+            step=int(frame.raw_step),
+            data=frame.image_data,
         )
     _timestamp(img.timestamp, t)
     out.proto(IMAGE_TOPIC, img, t)
@@ -893,8 +950,9 @@ def mesh_to_glb(mesh: Any, max_texture_px: int = 1024) -> bytes:
             if img is None or max(img.size) <= max_texture_px:
                 continue
             scale = max_texture_px / max(img.size)
-            small = img.resize((max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale))),
-                               Image.LANCZOS)
+            small = img.resize(
+                (max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale))), Image.LANCZOS
+            )
             if small.mode == "RGB":  # trimesh embeds JPEG-format images as JPEG (else PNG, 5x larger)
                 buf = io.BytesIO()
                 small.save(buf, format="JPEG", quality=90)
@@ -970,11 +1028,16 @@ class _PoseWriter:
             e.frame_id = f"object/{name}"
             e.id = name
             e.frame_locked = True  # lifetime left 0: forever
-            e.models.append(ModelPrimitive(
-                pose=Pose(position=Vector3(x=0, y=0, z=0), orientation=_GLTF_UNDO_Y_UP),
-                scale=Vector3(x=1, y=1, z=1), color=_color(self.index[name]), override_color=False,
-                media_type="model/gltf-binary", data=bytes(glb),
-            ))
+            e.models.append(
+                ModelPrimitive(
+                    pose=Pose(position=Vector3(x=0, y=0, z=0), orientation=_GLTF_UNDO_Y_UP),
+                    scale=Vector3(x=1, y=1, z=1),
+                    color=_color(self.index[name]),
+                    override_color=False,
+                    media_type="model/gltf-binary",
+                    data=bytes(glb),
+                )
+            )
         self.out.proto(SCENE_TOPIC, upd, log_time)
         self.scene_written = True
 
@@ -993,10 +1056,15 @@ class _PoseWriter:
             ok = str(r["status"]) == "ok" and T is not None
             conf = float(r.get("confidence", 0.0) or 0.0)
             conf = conf if np.isfinite(conf) else 0.0  # JSON has no NaN
-            status.append({
-                "obj_name": name, "status": str(r["status"]), "reason": str(r.get("reason", "") or ""),
-                "confidence": conf, "n_inliers": int(r.get("n_inliers", 0) or 0),
-            })
+            status.append(
+                {
+                    "obj_name": name,
+                    "status": str(r["status"]),
+                    "reason": str(r.get("reason", "") or ""),
+                    "confidence": conf,
+                    "n_inliers": int(r.get("n_inliers", 0) or 0),
+                }
+            )
             if not ok:
                 text = f"{name}: {r['status']}" + (f" ({r.get('reason')})" if r.get("reason") else "")
                 ta = ann.texts.add()
@@ -1018,14 +1086,28 @@ class _PoseWriter:
             out.proto(POSES_TOPIC_PREFIX + name, pif, log_time)
             self._annotate(ann, name, i, T, camera, r, conf, stamp_ns)
         out.proto(ANNOTATIONS_TOPIC, ann, log_time)
-        out.json(STATUS_TOPIC, STATUS_JSON_SCHEMA, {
-            "frame_id": str(rows[0]["frame_id"]) if rows else fid, "stamp_ns": int(log_time),
-            "n_ok": sum(s["status"] == "ok" for s in status), "objects": status,
-        }, log_time)
+        out.json(
+            STATUS_TOPIC,
+            STATUS_JSON_SCHEMA,
+            {
+                "frame_id": str(rows[0]["frame_id"]) if rows else fid,
+                "stamp_ns": int(log_time),
+                "n_ok": sum(s["status"] == "ok" for s in status),
+                "objects": status,
+            },
+            log_time,
+        )
 
     def _annotate(
-        self, ann: ImageAnnotations, name: str, i: int, T: np.ndarray, camera: Camera | None,
-        r: Mapping[str, Any], conf: float, stamp_ns: int,
+        self,
+        ann: ImageAnnotations,
+        name: str,
+        i: int,
+        T: np.ndarray,
+        camera: Camera | None,
+        r: Mapping[str, Any],
+        conf: float,
+        stamp_ns: int,
     ) -> None:
         inl = np.asarray(r.get("inliers_px", []) if r.get("inliers_px") is not None else [], dtype=float)
         if inl.size >= 2:
@@ -1041,7 +1123,9 @@ class _PoseWriter:
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             return
         lo, hi = self.bounds[name]
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        corners = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
         cam_pts = corners @ T[:3, :3].T + T[:3, 3]
         if np.any(cam_pts[:, 2] <= 1e-6):  # box reaches behind the camera: a projection would wrap around
             return
@@ -1131,8 +1215,12 @@ def write_poses_mcap(
 
 
 def _copy_with_poses(
-    f: Any, input_mcap: Path, rows: list[dict], meshes: Mapping[str, Any],
-    image_topic: str | None, calibration_topic: str | None,
+    f: Any,
+    input_mcap: Path,
+    rows: list[dict],
+    meshes: Mapping[str, Any],
+    image_topic: str | None,
+    calibration_topic: str | None,
 ) -> _PoseWriter:
     src = McapFrameSource(input_mcap, image_topic=image_topic, calibration_topic=calibration_topic)
     clash = sorted(ch.topic for ch in src.channels.values() if ch.topic.startswith(OUTPUT_PREFIX))
@@ -1160,8 +1248,11 @@ def _copy_with_poses(
     for schema, channel, message in src.iter_raw():
         pw.scene(message.log_time)
         out.w.add_message(
-            channel_ids[channel.id], log_time=message.log_time, data=message.data,
-            publish_time=message.publish_time, sequence=message.sequence,
+            channel_ids[channel.id],
+            log_time=message.log_time,
+            data=message.data,
+            publish_time=message.publish_time,
+            sequence=message.sequence,
         )
         if channel.topic == src.calibration_topic:
             cal = src.calibration(schema, channel, message)
@@ -1171,7 +1262,12 @@ def _copy_with_poses(
             img = src.image(schema, channel, message)
             c = cal or first
             cam = _camera(c, img) if c is not None else None
-            pw.image(message.log_time, img.stamp_ns, img.frame_id or CAMERA_FRAME_ID, cam,
-                     f"mcap:{message.log_time}")
+            pw.image(
+                message.log_time,
+                img.stamp_ns,
+                img.frame_id or CAMERA_FRAME_ID,
+                cam,
+                f"mcap:{message.log_time}",
+            )
     out.finish()
     return pw

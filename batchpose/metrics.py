@@ -29,13 +29,27 @@ MISSING = "missing"
 FAILURE_STATUSES = tuple(s for s in STATUSES if s != "ok") + (MISSING,)
 #: Columns of the per-instance table returned by :func:`score`.
 INSTANCE_COLUMNS = (
-    "frame_id", "obj_name", "status", "confidence", "diameter_m",
-    "add_m", "adds_m", "rot_err_deg", "trans_err_mm",
+    "frame_id",
+    "obj_name",
+    "status",
+    "confidence",
+    "diameter_m",
+    "add_m",
+    "adds_m",
+    "rot_err_deg",
+    "trans_err_mm",
 )
 #: Columns of the summary table returned by :func:`score` (before the ``n_<status>`` counts).
 SUMMARY_COLUMNS = (
-    "obj_name", "n", "n_ok", "adds_auc", "add_auc", "add_recall_01d", "adds_recall_01d",
-    "median_rot_err_deg", "median_trans_err_mm",
+    "obj_name",
+    "n",
+    "n_ok",
+    "adds_auc",
+    "add_auc",
+    "add_recall_01d",
+    "adds_recall_01d",
+    "median_rot_err_deg",
+    "median_trans_err_mm",
 )
 
 
@@ -316,7 +330,10 @@ def score(
             status=MISSING if e is None else str(e["status"]),
             confidence=np.nan if e is None else float(e["confidence"]),
             diameter_m=float(diameters[g["obj_name"]]),
-            add_m=np.inf, adds_m=np.inf, rot_err_deg=np.nan, trans_err_mm=np.nan,
+            add_m=np.inf,
+            adds_m=np.inf,
+            rot_err_deg=np.nan,
+            trans_err_mm=np.nan,
         )
         est_pose = None
         if e is not None and e["status"] == "ok":
@@ -351,7 +368,10 @@ def score(
             summary[c] = summary[c].astype(int)
     log.info(
         "scored %d instances of %d objects: ADD-S AUC %.1f, ADD AUC %.1f (pooled), %d failed",
-        len(per_instance), len(objects), pooled["adds_auc"], pooled["add_auc"],
+        len(per_instance),
+        len(objects),
+        pooled["adds_auc"],
+        pooled["add_auc"],
         len(per_instance) - pooled["n_ok"],
     )
     return per_instance, summary

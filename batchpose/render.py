@@ -31,7 +31,7 @@ _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 def _import_pyrender():
     platform = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
     try:
-        import pyrender  # noqa: PLC0415
+        import pyrender
 
         return pyrender
     except Exception as e:  # ImportError, OSError, AttributeError from PyOpenGL's platform loader

@@ -23,8 +23,21 @@ from batchpose.mesh import load_mesh
 
 log = logging.getLogger("batchpose")
 
-_VERSIONED = ("batchpose", "numpy", "opencv-python-headless", "pyrender", "PyOpenGL", "trimesh", "mcap",
-              "pandas", "pyarrow", "joblib", "dask", "distributed", "scipy")
+_VERSIONED = (
+    "batchpose",
+    "numpy",
+    "opencv-python-headless",
+    "pyrender",
+    "PyOpenGL",
+    "trimesh",
+    "mcap",
+    "pandas",
+    "pyarrow",
+    "joblib",
+    "dask",
+    "distributed",
+    "scipy",
+)
 
 
 def versions() -> dict:
@@ -49,13 +62,15 @@ def _backend(backend: str, scheduler: str | None, jobs: int):
     if backend != "dask":
         yield "loky"
         return
-    from dask.distributed import Client, LocalCluster  # noqa: PLC0415
+    from dask.distributed import Client, LocalCluster
 
     if scheduler:
         try:
             client = Client(scheduler, timeout="20s")
         except OSError as e:
-            raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({e})") from None
+            raise ConfigError(
+                f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({e})"
+            ) from None
         cluster = None
     else:
         cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None)
@@ -83,7 +98,7 @@ def main(
     report: bool = True,
 ) -> Path:
     """Run the whole pipeline; returns ``run_dir``."""
-    from batchpose.datasets import open_frames  # noqa: PLC0415
+    from batchpose.datasets import open_frames
 
     t_start = time.perf_counter()
     if jobs < 1:
@@ -116,7 +131,7 @@ def main(
     objects = [o.name for o in man.objects]
     ingest_frames.main(source, objects, run_dir, overwrite=overwrite, limit=limit)
 
-    import pandas as pd  # noqa: PLC0415
+    import pandas as pd
 
     frames_index = pd.read_parquet(run_dir / "frames.parquet")
     if frames_index.empty:
@@ -133,26 +148,48 @@ def main(
         )
         obj_ids[spec.name] = source.obj_id(spec.name)
     log.info("template libraries ready for %d objects in %.1f s", len(models), time.perf_counter() - t0)
-    _write_text_atomic(run_dir / "objects.json", json.dumps({
-        name: {"obj_id": obj_ids[name], "mesh": str(spec.mesh), "points": str(spec.points) if spec.points else None,
-               "diameter_m": models[name].diameter_m, "library": str(lib_dirs[name])}
-        for name, spec in zip(objects, man.objects)
-    }, indent=2))
+    _write_text_atomic(
+        run_dir / "objects.json",
+        json.dumps(
+            {
+                name: {
+                    "obj_id": obj_ids[name],
+                    "mesh": str(spec.mesh),
+                    "points": str(spec.points) if spec.points else None,
+                    "diameter_m": models[name].diameter_m,
+                    "library": str(lib_dirs[name]),
+                }
+                for name, spec in zip(objects, man.objects, strict=False)
+            },
+            indent=2,
+        ),
+    )
 
     with _backend(backend, scheduler, jobs) as jl_backend:
         poses_path = estimate_poses.main(
-            source, conf, conf_dict, lib_dirs, obj_ids, man.targets, run_dir, jobs=jobs, backend=jl_backend,
-            overwrite=overwrite, limit=limit, max_pairs=max_pairs,
+            source,
+            conf,
+            conf_dict,
+            lib_dirs,
+            obj_ids,
+            {o.name: o.mesh for o in man.objects},
+            man.targets,
+            run_dir,
+            jobs=jobs,
+            backend=jl_backend,
+            overwrite=overwrite,
+            limit=limit,
+            max_pairs=max_pairs,
         )
     if max_pairs is not None and poses_path.name != "poses.parquet":
         return run_dir  # stopped early on purpose (resume tests)
 
-    from batchpose import bop  # noqa: PLC0415
+    from batchpose import bop
 
     csv_path = bop.write_bop_csv(pd.read_parquet(poses_path), run_dir / "poses.csv")
     mcap_path = export_mcap.main(run_dir, poses_path, models, man.frames, source, overwrite=overwrite)
     if report:
-        from batchpose import make_report  # noqa: PLC0415
+        from batchpose import make_report
 
         make_report.main(run_dir, overwrite=True)
     log.info("done in %.1f s: %s, %s", time.perf_counter() - t_start, csv_path, mcap_path)

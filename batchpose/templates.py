@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from batchpose.config import RenderConfig, FeatureConfig
+from batchpose.config import FeatureConfig, RenderConfig
 from batchpose.features import detect, make_sift, to_gray
 from batchpose.mesh import ObjectModel
 from batchpose.views import sample_views
@@ -126,8 +126,15 @@ def render_templates(
     for view in views:
         T = view["cam_from_model"]
         rgb, depth = renderer.render(
-            model.content_hash, model.mesh, T, K, width, height, render_conf.shading,
-            render_conf.znear_m, render_conf.zfar_m,
+            model.content_hash,
+            model.mesh,
+            T,
+            K,
+            width,
+            height,
+            render_conf.shading,
+            render_conf.znear_m,
+            render_conf.zfar_m,
         )
         n_kept = 0
         ys, xs = np.nonzero(depth > 0)
@@ -154,7 +161,8 @@ def render_templates(
         )
         if progress is not None:
             progress(1)
-    cat = lambda parts, shape, dt: np.concatenate(parts).astype(dt) if parts else np.zeros(shape, dt)  # noqa: E731
+    def cat(parts, shape, dt):
+        return np.concatenate(parts).astype(dt) if parts else np.zeros(shape, dt)
     return TemplateLibrary(
         obj_name=model.name,
         key=key,

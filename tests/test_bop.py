@@ -26,14 +26,49 @@ def _poses() -> pd.DataFrame:
     R = Q * np.sign(np.linalg.det(Q))  # a proper rotation with "ugly" decimals
     recs = [
         # Written out of order on purpose: the file is sorted by scene_id, im_id, obj_id.
-        PoseRecord("48/2", "b", "ok", scene_id=48, im_id=2, obj_id=5, cam_from_model=_T(R, [0.01, -0.02, 0.9]),
-                   confidence=0.25, timings={"sift": 0.125, "gnc": 0.5}),
-        PoseRecord("48/1", "b", "ok", scene_id=48, im_id=1, obj_id=5, cam_from_model=_T(R, [0.05, 0.06, 0.7]),
-                   confidence=0.5, timings={"sift": 0.25}),
-        PoseRecord("48/1", "a", "ok", scene_id=48, im_id=1, obj_id=2, cam_from_model=_T(np.eye(3), [0.1, 0.2, 0.3]),
-                   confidence=0.75, timings={"sift": 0.5, "gnc": 0.25}),
-        PoseRecord("48/1", "c", "too_few_matches", reason="3 matches", scene_id=48, im_id=1, obj_id=9,
-                   timings={"sift": 1.0}),
+        PoseRecord(
+            "48/2",
+            "b",
+            "ok",
+            scene_id=48,
+            im_id=2,
+            obj_id=5,
+            cam_from_model=_T(R, [0.01, -0.02, 0.9]),
+            confidence=0.25,
+            timings={"sift": 0.125, "gnc": 0.5},
+        ),
+        PoseRecord(
+            "48/1",
+            "b",
+            "ok",
+            scene_id=48,
+            im_id=1,
+            obj_id=5,
+            cam_from_model=_T(R, [0.05, 0.06, 0.7]),
+            confidence=0.5,
+            timings={"sift": 0.25},
+        ),
+        PoseRecord(
+            "48/1",
+            "a",
+            "ok",
+            scene_id=48,
+            im_id=1,
+            obj_id=2,
+            cam_from_model=_T(np.eye(3), [0.1, 0.2, 0.3]),
+            confidence=0.75,
+            timings={"sift": 0.5, "gnc": 0.25},
+        ),
+        PoseRecord(
+            "48/1",
+            "c",
+            "too_few_matches",
+            reason="3 matches",
+            scene_id=48,
+            im_id=1,
+            obj_id=9,
+            timings={"sift": 1.0},
+        ),
     ]
     return pd.DataFrame([r.to_row() for r in recs])
 
@@ -81,16 +116,29 @@ def test_empty_results(tmp_path):
     [
         ("scene,im,obj\n", r"bad\.csv:1: expected the header"),
         ("", r"bad\.csv:1: expected the header.*empty file"),
-        ("scene_id,im_id,obj_id,score,R,t,time\n48,1,2,0.5,1 0 0 0 1 0 0 0 1,1 2 3\n",
-         r"bad\.csv:2: expected 7 comma-separated fields.*got 6"),
-        (("scene_id,im_id,obj_id,score,R,t,time\n48,1,2,0.5,1 0 0 0 1 0 0 0 1,1 2 3,1\n"
-          "48,1,2,0.5,1 0 0 0 1 0 0 0,1 2 3,1\n"), r"bad\.csv:3: field R needs 9 .* got 8"),
-        ("scene_id,im_id,obj_id,score,R,t,time\n48,x,2,0.5,1 0 0 0 1 0 0 0 1,1 2 3,1\n",
-         r"bad\.csv:2: field im_id must be a non-negative integer, got 'x'"),
-        ("scene_id,im_id,obj_id,score,R,t,time\n48,1,2,0.5,1 0 0 0 1 0 0 0 1,1 nan 3,1\n",
-         r"bad\.csv:2: field t contains NaN"),
-        ("scene_id,im_id,obj_id,score,R,t,time\n48,1,2,high,1 0 0 0 1 0 0 0 1,1 2 3,1\n",
-         r"bad\.csv:2: field score is not numeric"),
+        (
+            "scene_id,im_id,obj_id,score,R,t,time\n48,1,2,0.5,1 0 0 0 1 0 0 0 1,1 2 3\n",
+            r"bad\.csv:2: expected 7 comma-separated fields.*got 6",
+        ),
+        (
+            (
+                "scene_id,im_id,obj_id,score,R,t,time\n48,1,2,0.5,1 0 0 0 1 0 0 0 1,1 2 3,1\n"
+                "48,1,2,0.5,1 0 0 0 1 0 0 0,1 2 3,1\n"
+            ),
+            r"bad\.csv:3: field R needs 9 .* got 8",
+        ),
+        (
+            "scene_id,im_id,obj_id,score,R,t,time\n48,x,2,0.5,1 0 0 0 1 0 0 0 1,1 2 3,1\n",
+            r"bad\.csv:2: field im_id must be a non-negative integer, got 'x'",
+        ),
+        (
+            "scene_id,im_id,obj_id,score,R,t,time\n48,1,2,0.5,1 0 0 0 1 0 0 0 1,1 nan 3,1\n",
+            r"bad\.csv:2: field t contains NaN",
+        ),
+        (
+            "scene_id,im_id,obj_id,score,R,t,time\n48,1,2,high,1 0 0 0 1 0 0 0 1,1 2 3,1\n",
+            r"bad\.csv:2: field score is not numeric",
+        ),
     ],
 )
 def test_read_malformed_names_file_and_line(tmp_path, body, message):

@@ -30,9 +30,14 @@ def make_ycbv(root: Path, seed: int = 0) -> None:
         (root / rel).parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(root / f"{rel}-color.png"), rng.integers(0, 256, (24, 32, 3), dtype=np.uint8))
         poses = rng.normal(size=(3, 4, len(cls)))
-        scipy.io.savemat(root / f"{rel}-meta.mat", {
-            "cls_indexes": np.array(cls).reshape(-1, 1), "poses": poses, "intrinsic_matrix": K,
-        })
+        scipy.io.savemat(
+            root / f"{rel}-meta.mat",
+            {
+                "cls_indexes": np.array(cls).reshape(-1, 1),
+                "poses": poses,
+                "intrinsic_matrix": K,
+            },
+        )
 
 
 def make_images(root: Path, n: int = 2, seed: int = 0) -> None:
@@ -40,9 +45,19 @@ def make_images(root: Path, n: int = 2, seed: int = 0) -> None:
     root.mkdir(parents=True)
     for i in range(n):
         cv2.imwrite(str(root / f"{i:04d}.jpg"), rng.integers(0, 256, (24, 32, 3), dtype=np.uint8))
-    (root / "intrinsics.yaml").write_text(yaml.safe_dump(
-        {"fx": 500.0, "fy": 510.0, "cx": 15.5, "cy": 11.5, "width": 32, "height": 24, "dist": [0.1, 0, 0, 0, 0]}
-    ))
+    (root / "intrinsics.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "fx": 500.0,
+                "fy": 510.0,
+                "cx": 15.5,
+                "cy": 11.5,
+                "width": 32,
+                "height": 24,
+                "dist": [0.1, 0, 0, 0, 0],
+            }
+        )
+    )
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
@@ -84,16 +99,20 @@ def test_convert_images_and_bop_in_process(tmp_path):
     make_images(tmp_path / "imgs")
     assert convert.main(tmp_path / "imgs", tmp_path / "imgs.mcap", "images") == tmp_path / "imgs.mcap"
     frames = list(McapFrameSource(tmp_path / "imgs.mcap"))
-    assert [f.image_data for f in frames] == [p.read_bytes() for p in sorted((tmp_path / "imgs").glob("*.jpg"))]
+    assert [f.image_data for f in frames] == [
+        p.read_bytes() for p in sorted((tmp_path / "imgs").glob("*.jpg"))
+    ]
     np.testing.assert_array_equal(frames[0].camera.dist, [0.1, 0, 0, 0, 0])
 
     scene = tmp_path / "bop" / "000001"
     (scene / "rgb").mkdir(parents=True)
     cv2.imwrite(str(scene / "rgb" / "000004.png"), np.full((24, 32, 3), 200, np.uint8))
     (scene / "scene_camera.json").write_text(json.dumps({"4": {"cam_K": K.reshape(-1).tolist()}}))
-    (scene / "scene_gt.json").write_text(json.dumps(
-        {"4": [{"obj_id": 7, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [10, 20, 800]}]}
-    ))
+    (scene / "scene_gt.json").write_text(
+        json.dumps(
+            {"4": [{"obj_id": 7, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [10, 20, 800]}]}
+        )
+    )
     convert.main(tmp_path / "bop", tmp_path / "bop.mcap", "bop")
     src = McapFrameSource(tmp_path / "bop.mcap")
     (f,) = src

@@ -114,7 +114,11 @@ def make_bop(root: Path, seed: int = 0) -> dict:
     cams = {str(i): {"cam_K": K.reshape(-1).tolist(), "depth_scale": 0.1} for i in (1, 2)}
     (scene / "scene_camera.json").write_text(json.dumps(cams))
     P = _pose(rng)
-    gt = {"1": [{"cam_R_m2c": P[:, :3].reshape(-1).tolist(), "cam_t_m2c": (P[:, 3] * 1000).tolist(), "obj_id": 5}]}
+    gt = {
+        "1": [
+            {"cam_R_m2c": P[:, :3].reshape(-1).tolist(), "cam_t_m2c": (P[:, 3] * 1000).tolist(), "obj_id": 5}
+        ]
+    }
     (scene / "scene_gt.json").write_text(json.dumps(gt))
     return {"pose": P}
 
@@ -204,7 +208,11 @@ def test_open_frames_resolves_relative_paths(tmp_path):
         ({"format": "ycbv", "root": "x", "intrinsics": "y"}, ConfigError, "frames.intrinsics: unknown key"),
         ({"format": "ycbv", "root": "nowhere"}, DataError, "frames.root: .*nowhere does not exist"),
         ({"format": "mcap", "path": "nowhere.mcap"}, DataError, "frames.path: .*nowhere.mcap does not exist"),
-        ({"format": "bop", "root": ".", "obj_names": [1]}, ConfigError, "frames.obj_names: expected a mapping"),
+        (
+            {"format": "bop", "root": ".", "obj_names": [1]},
+            ConfigError,
+            "frames.obj_names: expected a mapping",
+        ),
         ("ycbv", ConfigError, "frames: expected a mapping"),
     ],
 )

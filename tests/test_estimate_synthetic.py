@@ -38,8 +38,9 @@ def textured_background(rng: np.random.Generator, w: int = 640, h: int = 480) ->
         color = tuple(int(c) for c in rng.integers(0, 256, 3))
         p = rng.integers(0, [w, h])
         if rng.random() < 0.5:
-            cv2.rectangle(img, tuple(int(v) for v in p), tuple(int(v) for v in p + rng.integers(10, 120, 2)),
-                          color, -1)
+            cv2.rectangle(
+                img, tuple(int(v) for v in p), tuple(int(v) for v in p + rng.integers(10, 120, 2)), color, -1
+            )
         else:
             cv2.circle(img, tuple(int(v) for v in p), int(rng.integers(5, 60)), color, -1)
     return img
@@ -63,7 +64,12 @@ def add_error(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray) -> float:
 @pytest.mark.slow
 def test_round_trip_30_poses(cracker_model, cracker_library):
     rng = np.random.default_rng(2026)
-    est = PoseEstimator(EstimatorConfig(), {cracker_model.name: cracker_library})
+    est = PoseEstimator(
+        EstimatorConfig(),
+        {cracker_model.name: cracker_library},
+        models={cracker_model.name: cracker_model},
+        renderer=get_renderer(),
+    )
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     cam = Camera(K_SYN, 640, 480)
     errors = []

@@ -58,7 +58,12 @@ def test_clustered_outliers_full_at_least_as_good_as_ransac_only():
             assert res.status == "ok", res.reason
             out.append(np.linalg.norm(res.cam_from_model[:3, 3] - T[:3, 3]))
     full_err, ransac_err = np.array(full_err), np.array(ransac_err)
-    print("translation error mm full", np.round(full_err * 1000, 2), "ransac_only", np.round(ransac_err * 1000, 2))
+    print(
+        "translation error mm full",
+        np.round(full_err * 1000, 2),
+        "ransac_only",
+        np.round(ransac_err * 1000, 2),
+    )
     assert full_err.mean() <= ransac_err.mean() + 1e-4
     assert np.all(full_err < 0.01)
 

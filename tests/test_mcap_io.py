@@ -65,12 +65,20 @@ def _pose(rng: np.random.Generator) -> np.ndarray:
 
 def _frames(n: int, ext: str = ".png", seed: int = 0) -> list[Frame]:
     rng = np.random.default_rng(seed)
-    cam = Camera(K=K1, width=W, height=H, dist=np.array([0.01, -0.002, 0.0, 0.0, 0.0]), distortion_model="plumb_bob")
+    cam = Camera(
+        K=K1, width=W, height=H, dist=np.array([0.01, -0.002, 0.0, 0.0, 0.0]), distortion_model="plumb_bob"
+    )
     return [
         Frame(
-            frame_id=f"0001/{i:06d}", scene_id=1, im_id=i, stamp_ns=T0 + i * DT, camera=cam,
-            image_format="png" if ext == ".png" else "jpeg", image_data=_enc(_img(rng), ext),
-            gt=(ObjectPose("003_cracker_box", _pose(rng)), ObjectPose("004_sugar_box", _pose(rng))), source=f"f{i}",
+            frame_id=f"0001/{i:06d}",
+            scene_id=1,
+            im_id=i,
+            stamp_ns=T0 + i * DT,
+            camera=cam,
+            image_format="png" if ext == ".png" else "jpeg",
+            image_data=_enc(_img(rng), ext),
+            gt=(ObjectPose("003_cracker_box", _pose(rng)), ObjectPose("004_sugar_box", _pose(rng))),
+            source=f"f{i}",
         )
         for i in range(n)
     ]
@@ -79,12 +87,21 @@ def _frames(n: int, ext: str = ".png", seed: int = 0) -> list[Frame]:
 class Log:
     """A small MCAP written with the plain mcap writer (so tests control chunking and compression)."""
 
-    def __init__(self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = "") -> None:
+    def __init__(
+        self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = ""
+    ) -> None:
         self.f = open(path, "wb")  # noqa: SIM115 - closed in close()
-        kw = {} if summary else {
-            "index_types": IndexType.NONE, "repeat_channels": False, "repeat_schemas": False,
-            "use_statistics": False, "use_summary_offsets": False,
-        }
+        kw = (
+            {}
+            if summary
+            else {
+                "index_types": IndexType.NONE,
+                "repeat_channels": False,
+                "repeat_schemas": False,
+                "use_statistics": False,
+                "use_summary_offsets": False,
+            }
+        )
         self.w = Writer(self.f, chunk_size=chunk_size, compression=CompressionType.NONE, **kw)
         self.w.start(profile=profile, library="test")
         self.channels: dict[str, int] = {}
@@ -93,8 +110,9 @@ class Log:
         if topic not in self.channels:
             sid = register_schema(self.w, type(msg))
             self.channels[topic] = self.w.register_channel(topic, "protobuf", sid)
-        self.w.add_message(self.channels[topic], log_time=t, data=msg.SerializeToString(), publish_time=t + 7,
-                           sequence=seq)
+        self.w.add_message(
+            self.channels[topic], log_time=t, data=msg.SerializeToString(), publish_time=t + 7, sequence=seq
+        )
 
     def json(self, topic: str, obj, t: int) -> None:
         if topic not in self.channels:
@@ -107,10 +125,18 @@ class Log:
         self.f.close()
 
 
-def _calib(t: int, K: np.ndarray = K1, frame_id: str = "cam_optical", w: int = W, h: int = H) -> CameraCalibration:
-    c = CameraCalibration(frame_id=frame_id, width=w, height=h, distortion_model="plumb_bob",
-                          D=[0.1, 0.0, 0.0, 0.0, 0.0], K=K.reshape(-1).tolist(),
-                          P=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist())
+def _calib(
+    t: int, K: np.ndarray = K1, frame_id: str = "cam_optical", w: int = W, h: int = H
+) -> CameraCalibration:
+    c = CameraCalibration(
+        frame_id=frame_id,
+        width=w,
+        height=h,
+        distortion_model="plumb_bob",
+        D=[0.1, 0.0, 0.0, 0.0, 0.0],
+        K=K.reshape(-1).tolist(),
+        P=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist(),
+    )
     c.timestamp.FromNanoseconds(t)
     return c
 
@@ -144,7 +170,11 @@ def test_convert_then_ingest_identical_pixels_and_K(tmp_path, ext):
     assert not (tmp_path / "log.mcap.tmp").exists()
     src = McapFrameSource(out)
     assert (src.image_topic, src.calibration_topic, src.gt_topic, src.count()) == (
-        "/camera/image", "/camera/calibration", "/ground_truth/poses", 3)
+        "/camera/image",
+        "/camera/calibration",
+        "/ground_truth/poses",
+        3,
+    )
     back = list(src)
     for a, b in zip(frames, back, strict=True):
         assert b.image_data == a.image_data  # bytes copied, never re-encoded
@@ -182,15 +212,21 @@ MSG: builtin_interfaces/Time
 int32 sec
 uint32 nanosec
 """
-ROS_IMAGE = ROS_HEADER + """uint32 height
+ROS_IMAGE = (
+    ROS_HEADER
+    + """uint32 height
 uint32 width
 string encoding
 uint8 is_bigendian
 uint32 step
 uint8[] data
-""" + ROS_DEPS
+"""
+    + ROS_DEPS
+)
 ROS_COMPRESSED = ROS_HEADER + "string format\nuint8[] data\n" + ROS_DEPS
-ROS_CAMERA_INFO = ROS_HEADER + """uint32 height
+ROS_CAMERA_INFO = (
+    ROS_HEADER
+    + """uint32 height
 uint32 width
 string distortion_model
 float64[] d
@@ -200,7 +236,9 @@ float64[12] p
 uint32 binning_x
 uint32 binning_y
 sensor_msgs/RegionOfInterest roi
-""" + ROS_DEPS + """================================================================================
+"""
+    + ROS_DEPS
+    + """================================================================================
 MSG: sensor_msgs/RegionOfInterest
 uint32 x_offset
 uint32 y_offset
@@ -208,6 +246,7 @@ uint32 height
 uint32 width
 bool do_rectify
 """
+)
 
 
 def _header(t: int) -> dict:
@@ -225,29 +264,58 @@ def test_ros2_image_and_camera_info(tmp_path):
         s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", ROS_CAMERA_INFO)
         for i in range(3):
             t = T0 + i * DT
-            w.write_message("/robot/camera/camera_info", s_info, {
-                "header": _header(t), "height": H, "width": W, "distortion_model": "rational_polynomial",
-                "d": dist, "k": K2.reshape(-1).tolist(), "r": np.eye(3).reshape(-1).tolist(),
-                "p": np.hstack([K2, np.zeros((3, 1))]).reshape(-1).tolist(), "binning_x": 0, "binning_y": 0,
-                "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
-            }, log_time=t)
+            w.write_message(
+                "/robot/camera/camera_info",
+                s_info,
+                {
+                    "header": _header(t),
+                    "height": H,
+                    "width": W,
+                    "distortion_model": "rational_polynomial",
+                    "d": dist,
+                    "k": K2.reshape(-1).tolist(),
+                    "r": np.eye(3).reshape(-1).tolist(),
+                    "p": np.hstack([K2, np.zeros((3, 1))]).reshape(-1).tolist(),
+                    "binning_x": 0,
+                    "binning_y": 0,
+                    "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
+                },
+                log_time=t,
+            )
             bgr = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
             imgs.append(bgr)
-            w.write_message("/robot/camera/image_raw", s_img, {
-                "header": _header(t), "height": H, "width": W, "encoding": "bgr8", "is_bigendian": 0,
-                "step": W * 3, "data": bgr.tobytes(),
-            }, log_time=t + 1000)
+            w.write_message(
+                "/robot/camera/image_raw",
+                s_img,
+                {
+                    "header": _header(t),
+                    "height": H,
+                    "width": W,
+                    "encoding": "bgr8",
+                    "is_bigendian": 0,
+                    "step": W * 3,
+                    "data": bgr.tobytes(),
+                },
+                log_time=t + 1000,
+            )
         w.finish()
     src = McapFrameSource(path)
     assert (src.image_topic, src.calibration_topic, src.count()) == (
-        "/robot/camera/image_raw", "/robot/camera/camera_info", 3)
+        "/robot/camera/image_raw",
+        "/robot/camera/camera_info",
+        3,
+    )
     frames = list(src)
     for i, fr in enumerate(frames):
         assert (fr.image_format, fr.raw_step, fr.stamp_ns, fr.im_id) == ("bgr8", W * 3, T0 + i * DT + 1000, i)
         np.testing.assert_array_equal(decode_image(fr), imgs[i][:, :, ::-1])
         np.testing.assert_array_equal(fr.camera.K, K2)
         np.testing.assert_array_equal(fr.camera.dist, dist)
-        assert (fr.camera.distortion_model, fr.camera.width, fr.camera.height) == ("rational_polynomial", W, H)
+        assert (fr.camera.distortion_model, fr.camera.width, fr.camera.height) == (
+            "rational_polynomial",
+            W,
+            H,
+        )
 
 
 def test_ros2_compressed_image(tmp_path):
@@ -258,12 +326,25 @@ def test_ros2_compressed_image(tmp_path):
         w = Ros2Writer(f)
         s_img = w.register_msgdef("sensor_msgs/msg/CompressedImage", ROS_COMPRESSED)
         s_info = w.register_msgdef("sensor_msgs/msg/CameraInfo", ROS_CAMERA_INFO)
-        w.write_message("/cam/camera_info", s_info, {"header": _header(T0), "height": H, "width": W,
-                        "distortion_model": "plumb_bob", "d": [0.0] * 5, "k": K1.reshape(-1).tolist()},
-                        log_time=T0)
-        w.write_message("/cam/image/compressed", s_img,
-                        {"header": _header(T0), "format": "bgr8; png compressed bgr8", "data": _enc(img)},
-                        log_time=T0)
+        w.write_message(
+            "/cam/camera_info",
+            s_info,
+            {
+                "header": _header(T0),
+                "height": H,
+                "width": W,
+                "distortion_model": "plumb_bob",
+                "d": [0.0] * 5,
+                "k": K1.reshape(-1).tolist(),
+            },
+            log_time=T0,
+        )
+        w.write_message(
+            "/cam/image/compressed",
+            s_img,
+            {"header": _header(T0), "format": "bgr8; png compressed bgr8", "data": _enc(img)},
+            log_time=T0,
+        )
         w.finish()
     (fr,) = McapFrameSource(path)
     assert fr.image_format == "png"
@@ -279,7 +360,9 @@ def test_foxglove_raw_image_encodings(tmp_path, encoding):
     px = rng.integers(0, np.iinfo(dtype).max, (H, W, ch), dtype=dtype)
     log_ = Log(tmp_path / "raw.mcap")
     log_.proto("/cam/calibration", _calib(T0), T0)
-    m = RawImage(frame_id="c", width=W, height=H, encoding=encoding, step=W * ch * px.itemsize, data=px.tobytes())
+    m = RawImage(
+        frame_id="c", width=W, height=H, encoding=encoding, step=W * ch * px.itemsize, data=px.tobytes()
+    )
     log_.proto("/cam/image", m, T0)
     log_.close()
     (fr,) = McapFrameSource(tmp_path / "raw.mcap")
@@ -339,12 +422,20 @@ def _rows(stamps: list[int], rng: np.random.Generator, fail: set[int]) -> list[d
     for i, s in enumerate(stamps):
         T = _pose(rng)
         ok = i not in fail
-        rows.append({
-            "frame_id": f"mcap:{s}", "stamp_ns": s, "obj_name": "box", "status": "ok" if ok else "too_few_matches",
-            "reason": "" if ok else "3 matches", "R": T[:3, :3].reshape(-1).tolist() if ok else [np.nan] * 9,
-            "t_m": T[:3, 3].tolist() if ok else [np.nan] * 3, "confidence": 0.8 if ok else 0.0,
-            "n_inliers": 12 if ok else 0, "inliers_px": [10.0, 12.0, 20.5, 30.0] if ok else [],
-        })
+        rows.append(
+            {
+                "frame_id": f"mcap:{s}",
+                "stamp_ns": s,
+                "obj_name": "box",
+                "status": "ok" if ok else "too_few_matches",
+                "reason": "" if ok else "3 matches",
+                "R": T[:3, :3].reshape(-1).tolist() if ok else [np.nan] * 9,
+                "t_m": T[:3, 3].tolist() if ok else [np.nan] * 3,
+                "confidence": 0.8 if ok else 0.0,
+                "n_inliers": 12 if ok else 0,
+                "inliers_px": [10.0, 12.0, 20.5, 30.0] if ok else [],
+            }
+        )
     return rows
 
 
@@ -352,8 +443,18 @@ def _all_messages(path: Path) -> list[tuple]:
     with open(path, "rb") as f:
         r = make_reader(f, validate_crcs=True)
         return [
-            (ch.topic, s.name if s else None, s.encoding if s else None, s.data if s else None,
-             ch.message_encoding, dict(ch.metadata), m.log_time, m.publish_time, m.sequence, m.data)
+            (
+                ch.topic,
+                s.name if s else None,
+                s.encoding if s else None,
+                s.data if s else None,
+                ch.message_encoding,
+                dict(ch.metadata),
+                m.log_time,
+                m.publish_time,
+                m.sequence,
+                m.data,
+            )
             for s, ch, m in r.iter_messages()
         ]
 
@@ -390,8 +491,12 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
         assert r.get_header().profile == "x-test"
         assert {m.name: m.metadata for m in r.iter_metadata()} == {"robot": {"name": "r2"}}
         assert [(a.name, a.data) for a in r.iter_attachments()] == [("calib.yaml", b"fx: 1\n")]
-        new = [(ch.topic, m, d) for _, ch, m, d in r.iter_decoded_messages(
-            topics=[SCENE_TOPIC, TF_TOPIC, ANNOTATIONS_TOPIC, "/batchpose/poses/box"])]
+        new = [
+            (ch.topic, m, d)
+            for _, ch, m, d in r.iter_decoded_messages(
+                topics=[SCENE_TOPIC, TF_TOPIC, ANNOTATIONS_TOPIC, "/batchpose/poses/box"]
+            )
+        ]
         status = [json.loads(m.data) for _, ch, m in r.iter_messages(topics=[STATUS_TOPIC])]
 
     (scene,) = [d for t, _, d in new if t == SCENE_TOPIC]
@@ -419,8 +524,9 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
             assert not ann.points and "box: too_few_matches (3 matches)" in ann.texts[0].text
             continue
         R = np.reshape(row["R"], (3, 3))
-        uv, _ = cv2.projectPoints(corners, cv2.Rodrigues(R)[0], np.array(row["t_m"]), K1,
-                                  np.array([0.1, 0.0, 0.0, 0.0, 0.0]))
+        uv, _ = cv2.projectPoints(
+            corners, cv2.Rodrigues(R)[0], np.array(row["t_m"]), K1, np.array([0.1, 0.0, 0.0, 0.0, 0.0])
+        )
         box = [p for p in ann.points if p.type == 4]  # LINE_LIST
         (pts,) = [p for p in ann.points if p.type == 1]  # POINTS: inliers
         assert [(q.x, q.y) for q in pts.points] == [(10.0, 12.0), (20.5, 30.0)]
@@ -430,8 +536,13 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
         assert d.max() < 1e-6
         assert ann.texts[0].timestamp.ToNanoseconds() == m.log_time - 5_000_000
     assert [s["n_ok"] for s in status] == [1, 1, 0, 1, 1]
-    assert status[2]["objects"][0] == {"obj_name": "box", "status": "too_few_matches", "reason": "3 matches",
-                                       "confidence": 0.0, "n_inliers": 0}
+    assert status[2]["objects"][0] == {
+        "obj_name": "box",
+        "status": "too_few_matches",
+        "reason": "3 matches",
+        "confidence": 0.0,
+        "n_inliers": 0,
+    }
 
 
 def test_write_back_from_folder_frames(tmp_path):
@@ -443,8 +554,16 @@ def test_write_back_from_folder_frames(tmp_path):
     assert [b.image_data for b in back] == [f.image_data for f in frames]
     with open(out, "rb") as f:
         topics = {ch.topic for _, ch, _ in make_reader(f, validate_crcs=True).iter_messages()}
-    assert {"/camera/image", "/camera/calibration", "/ground_truth/poses", SCENE_TOPIC, TF_TOPIC,
-            ANNOTATIONS_TOPIC, STATUS_TOPIC, "/batchpose/poses/box"} == topics
+    assert {
+        "/camera/image",
+        "/camera/calibration",
+        "/ground_truth/poses",
+        SCENE_TOPIC,
+        TF_TOPIC,
+        ANNOTATIONS_TOPIC,
+        STATUS_TOPIC,
+        "/batchpose/poses/box",
+    } == topics
 
 
 def test_write_back_refuses_to_overwrite_input(tmp_path):
@@ -480,7 +599,9 @@ def test_truncated_without_complete_chunk(tmp_path):
     p = tmp_path / "cut.mcap"
     _simple_log(p)
     p.write_bytes(p.read_bytes()[:200])
-    with pytest.raises(DataError, match=r"cut.mcap: truncated MCAP \(no footer/summary\) and no complete chunk"):
+    with pytest.raises(
+        DataError, match=r"cut.mcap: truncated MCAP \(no footer/summary\) and no complete chunk"
+    ):
         McapFrameSource(p)
 
 
@@ -498,7 +619,9 @@ def test_truncated_keeps_complete_chunks_and_warns(tmp_path, caplog):
             if ci.chunk_start_offset + ci.chunk_length <= cut:
                 f.seek(ci.chunk_start_offset + 9)
                 chunk = Chunk.read(ReadDataStream(f))
-                expected += sum(isinstance(r, Message) and r.channel_id == image_ch for r in breakup_chunk(chunk))
+                expected += sum(
+                    isinstance(r, Message) and r.channel_id == image_ch for r in breakup_chunk(chunk)
+                )
     assert 0 < expected < 12
     p.write_bytes(raw[:cut])
     with caplog.at_level(logging.WARNING, logger="batchpose"):
@@ -538,15 +661,21 @@ def test_image_topic_without_calibration(tmp_path):
     log_.proto("/cam/image", _cimg(T0, b"\xff\xd8"), T0)
     log_.proto("/other/calibration", _calib(T0), T0)
     log_.close()
-    with pytest.raises(CameraError, match=r"nocal.mcap:/cam/image: image topic has no calibration.*/other/calibration"):
+    with pytest.raises(
+        CameraError, match=r"nocal.mcap:/cam/image: image topic has no calibration.*/other/calibration"
+    ):
         McapFrameSource(p)
-    assert McapFrameSource(p, calibration_topic="/other/calibration").calibration_topic == "/other/calibration"
+    assert (
+        McapFrameSource(p, calibration_topic="/other/calibration").calibration_topic == "/other/calibration"
+    )
 
 
 def test_image_topic_with_non_image_schema(tmp_path):
     p = tmp_path / "x.mcap"
     _simple_log(p)
-    with pytest.raises(DataError, match=r"x.mcap:/cam/calibration: schema 'foxglove.CameraCalibration' is not an image"):
+    with pytest.raises(
+        DataError, match=r"x.mcap:/cam/calibration: schema 'foxglove.CameraCalibration' is not an image"
+    ):
         McapFrameSource(p, image_topic="/cam/calibration")
     with pytest.raises(DataError, match=r"image topic '/nope' not found \(image topics: /cam/image"):
         McapFrameSource(p, image_topic="/nope")
@@ -556,8 +685,10 @@ def test_image_topic_with_non_image_schema(tmp_path):
     ("msg", "match"),
     [
         (_cimg(T0, b"RIFF....WEBP", fmt="webp"), "unsupported image encoding 'webp'"),
-        (RawImage(width=W, height=H, encoding="yuv422", step=W * 2, data=bytes(W * H * 2)),
-         "unsupported image encoding 'yuv422'"),
+        (
+            RawImage(width=W, height=H, encoding="yuv422", step=W * 2, data=bytes(W * H * 2)),
+            "unsupported image encoding 'yuv422'",
+        ),
         (_cimg(T0, b""), r"image is empty \(0 bytes\)"),
         (RawImage(width=0, height=H, encoding="rgb8", step=0, data=b""), r"image is empty \(0 bytes\)"),
         (RawImage(width=0, height=H, encoding="rgb8", step=0, data=b"\x00" * 10), "raw rgb8 image of 0x48"),

@@ -144,34 +144,51 @@ def test_shape_checks_name_expected_and_actual():
 
 
 def _gt_row(frame_id: str, obj: str, R: np.ndarray, t: np.ndarray) -> dict:
-    return {"frame_id": frame_id, "obj_name": obj, "obj_id": 1 if obj == "a" else 2,
-            "R": R.ravel().tolist(), "t_m": t.tolist()}
+    return {
+        "frame_id": frame_id,
+        "obj_name": obj,
+        "obj_id": 1 if obj == "a" else 2,
+        "R": R.ravel().tolist(),
+        "t_m": t.tolist(),
+    }
 
 
 def _est_row(frame_id: str, obj: str, R, t, status: str = "ok", confidence: float = 0.9) -> dict:
     nan9, nan3 = [math.nan] * 9, [math.nan] * 3
-    return {"frame_id": frame_id, "obj_name": obj, "status": status, "confidence": confidence,
-            "R": nan9 if R is None else np.asarray(R).ravel().tolist(),
-            "t_m": nan3 if t is None else np.asarray(t).tolist()}
+    return {
+        "frame_id": frame_id,
+        "obj_name": obj,
+        "status": status,
+        "confidence": confidence,
+        "R": nan9 if R is None else np.asarray(R).ravel().tolist(),
+        "t_m": nan3 if t is None else np.asarray(t).tolist(),
+    }
 
 
 @pytest.fixture
 def scored():
     R = _rot_z(30)
     t = np.array([0.0, 0.0, 0.7])
-    gt = pd.DataFrame([
-        _gt_row("f1", "a", R, t), _gt_row("f2", "a", R, t), _gt_row("f3", "a", R, t),
-        _gt_row("f1", "b", R, t), _gt_row("f2", "b", R, t),
-    ])
-    est = pd.DataFrame([
-        _est_row("f1", "a", R, t),
-        _est_row("f1", "a", None, None, status="pnp_failed", confidence=0.99),  # duplicate: ok row wins
-        _est_row("f2", "a", R, t + np.array([0.01, 0.0, 0.0]), confidence=0.5),  # 10 mm off
-        # f3 / a: no row at all -> missing
-        _est_row("f1", "b", None, None, status="too_few_matches", confidence=0.0),
-        _est_row("f2", "b", R, t),
-        _est_row("f9", "b", R, t),  # no ground truth: ignored
-    ])
+    gt = pd.DataFrame(
+        [
+            _gt_row("f1", "a", R, t),
+            _gt_row("f2", "a", R, t),
+            _gt_row("f3", "a", R, t),
+            _gt_row("f1", "b", R, t),
+            _gt_row("f2", "b", R, t),
+        ]
+    )
+    est = pd.DataFrame(
+        [
+            _est_row("f1", "a", R, t),
+            _est_row("f1", "a", None, None, status="pnp_failed", confidence=0.99),  # duplicate: ok row wins
+            _est_row("f2", "a", R, t + np.array([0.01, 0.0, 0.0]), confidence=0.5),  # 10 mm off
+            # f3 / a: no row at all -> missing
+            _est_row("f1", "b", None, None, status="too_few_matches", confidence=0.0),
+            _est_row("f2", "b", R, t),
+            _est_row("f9", "b", R, t),  # no ground truth: ignored
+        ]
+    )
     points = {"a": SQUARE, "b": SQUARE * 2}
     diameters = {"a": 0.2, "b": 0.1}
     return metrics.score(est, gt, points, diameters)
@@ -216,7 +233,9 @@ def test_score_summary(scored):
 def test_score_ground_truth_gives_100():
     rng = np.random.default_rng(1)
     pts = rng.normal(scale=0.05, size=(200, 3))
-    gt = pd.DataFrame([_gt_row(f"f{i}", "a", _rot_z(10 * i), np.array([0, 0, 0.5 + 0.1 * i])) for i in range(5)])
+    gt = pd.DataFrame(
+        [_gt_row(f"f{i}", "a", _rot_z(10 * i), np.array([0, 0, 0.5 + 0.1 * i])) for i in range(5)]
+    )
     est = gt.assign(status="ok", confidence=1.0)
     _, s = metrics.score(est, gt, {"a": pts}, {"a": 0.2})
     pooled = s.set_index("obj_name").loc["pooled"]

@@ -57,7 +57,9 @@ def _gt_pose(obj: str, k: int) -> np.ndarray:
     return _T(R, [-0.05, 0.0, 0.6]) if obj == "obj_a" else _T(R, [0.06, 0.01, 0.6])
 
 
-def make_run(root: Path, with_gt: bool = True, frames_root: Path | None = None, shift_mm: float = 10.0) -> Path:
+def make_run(
+    root: Path, with_gt: bool = True, frames_root: Path | None = None, shift_mm: float = 10.0
+) -> Path:
     """Write a run directory in the pipeline's layout (4 frames, 2 objects)."""
     run = root / "run"
     data = root / "data"
@@ -68,59 +70,120 @@ def make_run(root: Path, with_gt: bool = True, frames_root: Path | None = None, 
         noise = cv2.GaussianBlur(rng.integers(0, 255, (H, W, 3), dtype=np.uint8), (0, 0), 3)
         img = cv2.addWeighted(noise, 0.6, np.full_like(noise, 60 + 30 * k), 0.4, 0)
         cv2.imwrite(str(img_dir / f"{fid}.png"), img)
-    (img_dir / "intrinsics.yaml").write_text(yaml.safe_dump(
-        {"fx": 200.0, "fy": 200.0, "cx": 80.0, "cy": 60.0, "width": W, "height": H}))
+    (img_dir / "intrinsics.yaml").write_text(
+        yaml.safe_dump({"fx": 200.0, "fy": 200.0, "cx": 80.0, "cy": 60.0, "width": W, "height": H})
+    )
 
     pts_a = trimesh.sample.sample_surface(trimesh.creation.box(extents=BOX_A), 300, seed=1)[0]
     np.savetxt(data / "obj_a.xyz", pts_a, fmt="%.6f")
     trimesh.creation.box(extents=BOX_B).export(data / "obj_b.ply")
     objects = {
-        "obj_a": {"obj_id": 1, "mesh": str(data / "obj_a.ply"), "points": str(data / "obj_a.xyz"),
-                  "diameter_m": float(np.linalg.norm(BOX_A))},
-        "obj_b": {"obj_id": 2, "mesh": str(data / "obj_b.ply"), "points": None,
-                  "diameter_m": float(np.linalg.norm(BOX_B))},
+        "obj_a": {
+            "obj_id": 1,
+            "mesh": str(data / "obj_a.ply"),
+            "points": str(data / "obj_a.xyz"),
+            "diameter_m": float(np.linalg.norm(BOX_A)),
+        },
+        "obj_b": {
+            "obj_id": 2,
+            "mesh": str(data / "obj_b.ply"),
+            "points": None,
+            "diameter_m": float(np.linalg.norm(BOX_B)),
+        },
     }
     run.mkdir(parents=True)
     (run / "objects.json").write_text(json.dumps(objects, indent=1))
 
-    frames = pd.DataFrame([
-        {"frame_id": fid, "scene_id": 0, "im_id": k, "stamp_ns": k * 33_333_333, "width": W, "height": H,
-         "K": K.ravel().tolist(), "source": str(img_dir / f"{fid}.png")}
-        for k, fid in enumerate(FRAME_IDS)
-    ])
+    frames = pd.DataFrame(
+        [
+            {
+                "frame_id": fid,
+                "scene_id": 0,
+                "im_id": k,
+                "stamp_ns": k * 33_333_333,
+                "width": W,
+                "height": H,
+                "K": K.ravel().tolist(),
+                "source": str(img_dir / f"{fid}.png"),
+            }
+            for k, fid in enumerate(FRAME_IDS)
+        ]
+    )
     frames.to_parquet(run / "frames.parquet")
     if with_gt:
-        gt = pd.DataFrame([
-            {"frame_id": fid, "obj_name": obj, "obj_id": objects[obj]["obj_id"],
-             "R": _gt_pose(obj, k)[:3, :3].ravel().tolist(), "t_m": _gt_pose(obj, k)[:3, 3].tolist()}
-            for k, fid in enumerate(FRAME_IDS) for obj in ("obj_a", "obj_b")
-        ])
+        gt = pd.DataFrame(
+            [
+                {
+                    "frame_id": fid,
+                    "obj_name": obj,
+                    "obj_id": objects[obj]["obj_id"],
+                    "R": _gt_pose(obj, k)[:3, :3].ravel().tolist(),
+                    "t_m": _gt_pose(obj, k)[:3, 3].tolist(),
+                }
+                for k, fid in enumerate(FRAME_IDS)
+                for obj in ("obj_a", "obj_b")
+            ]
+        )
         gt.to_parquet(run / "gt.parquet")
 
     recs = []
     shift = np.eye(4)
     shift[0, 3] = shift_mm / 1000.0
     for k, fid in enumerate(FRAME_IDS):
-        common = {"scene_id": 0, "im_id": k, "stamp_ns": k * 33_333_333,
-                  "timings": {"decode": 0.002, "sift": 0.1 + 0.01 * k, "match": 0.02, "gnc": 0.005}}
+        common = {
+            "scene_id": 0,
+            "im_id": k,
+            "stamp_ns": k * 33_333_333,
+            "timings": {"decode": 0.002, "sift": 0.1 + 0.01 * k, "match": 0.02, "gnc": 0.005},
+        }
         # obj_a: exact, exact, 10 mm off along x, failed.
         if k < 3:
             T = shift @ _gt_pose("obj_a", k) if k == 2 else _gt_pose("obj_a", k)
-            recs.append(PoseRecord(fid, "obj_a", "ok", obj_id=1, cam_from_model=T, confidence=0.9 - 0.2 * k,
-                                   n_matches=80, n_inliers=40 - 10 * k, **common))
+            recs.append(
+                PoseRecord(
+                    fid,
+                    "obj_a",
+                    "ok",
+                    obj_id=1,
+                    cam_from_model=T,
+                    confidence=0.9 - 0.2 * k,
+                    n_matches=80,
+                    n_inliers=40 - 10 * k,
+                    **common,
+                )
+            )
         else:
-            recs.append(PoseRecord(fid, "obj_a", "too_few_matches", reason="4 matches < 6", obj_id=1,
-                                   n_matches=4, **common))
+            recs.append(
+                PoseRecord(
+                    fid, "obj_a", "too_few_matches", reason="4 matches < 6", obj_id=1, n_matches=4, **common
+                )
+            )
         # obj_b: exact three times, no row at all for the last frame.
         if k < 3:
-            recs.append(PoseRecord(fid, "obj_b", "ok", obj_id=2, cam_from_model=_gt_pose("obj_b", k),
-                                   confidence=0.8, n_matches=60, n_inliers=30, **common))
+            recs.append(
+                PoseRecord(
+                    fid,
+                    "obj_b",
+                    "ok",
+                    obj_id=2,
+                    cam_from_model=_gt_pose("obj_b", k),
+                    confidence=0.8,
+                    n_matches=60,
+                    n_inliers=30,
+                    **common,
+                )
+            )
     pd.DataFrame([r.to_row() for r in recs]).to_parquet(run / "poses.parquet")
 
     (run / "config.yaml").write_text("name: test\ngnc:\n  kappa: 5.0\n  gamma: 0.5\n")
-    (run / "versions.json").write_text(json.dumps({"batchpose": "0.1.0", "numpy": np.__version__,
-                                                   "opencv": cv2.__version__}))
-    spec = {"format": "images", "root": str(frames_root or img_dir), "intrinsics": str(img_dir / "intrinsics.yaml")}
+    (run / "versions.json").write_text(
+        json.dumps({"batchpose": "0.1.0", "numpy": np.__version__, "opencv": cv2.__version__})
+    )
+    spec = {
+        "format": "images",
+        "root": str(frames_root or img_dir),
+        "intrinsics": str(img_dir / "intrinsics.yaml"),
+    }
     (run / "manifest.yaml").write_text(yaml.safe_dump({"frames": spec, "objects": sorted(objects)}))
     return run
 
@@ -191,12 +254,22 @@ def test_html_content(report):
     if HAVE_DATASETS:
         # 6 ok instances: best 4, worst 2; failures (too_few_matches, missing) show ground truth only.
         overlays = sorted(k for k in imgs if k.startswith("overlay-"))
-        assert overlays == ["overlay-best-1", "overlay-best-2", "overlay-best-3", "overlay-best-4",
-                            "overlay-failed-1", "overlay-failed-2", "overlay-worst-1", "overlay-worst-2"]
+        assert overlays == [
+            "overlay-best-1",
+            "overlay-best-2",
+            "overlay-best-3",
+            "overlay-best-4",
+            "overlay-failed-1",
+            "overlay-failed-2",
+            "overlay-worst-1",
+            "overlay-worst-2",
+        ]
         worst = _decodes(imgs["overlay-worst-1"])
         assert worst.shape[0] == 200 and abs(worst.shape[1] - 267) <= 2  # 4:3 crop
         # Both colours are drawn: ground truth green and the 10 mm-off estimate orange (BGR here).
-        assert np.any(np.all(worst == (60, 200, 40), axis=2)) and np.any(np.all(worst == (0, 140, 255), axis=2))
+        assert np.any(np.all(worst == (60, 200, 40), axis=2)) and np.any(
+            np.all(worst == (0, 140, 255), axis=2)
+        )
         assert "gallery-note" not in html
     else:
         assert 'id="gallery-note"' in html
@@ -302,9 +375,20 @@ def chromium() -> str:
 
 
 def _run_browser(browser: str, tmp: Path, *args: str) -> subprocess.CompletedProcess:
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             "--disable-dev-shm-usage", f"--user-data-dir={tmp / 'profile'}", "--enable-logging=stderr", "--v=0"]
+    flags = [
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--disable-dev-shm-usage",
+        f"--user-data-dir={tmp / 'profile'}",
+        "--enable-logging=stderr",
+        "--v=0",
+    ]
     return subprocess.run([browser, *flags, *args], check=False, capture_output=True, text=True, timeout=180)
 
 
@@ -324,8 +408,9 @@ def test_report_in_browser(report, chromium, tmp_path):
     assert all(len(b64) > 1000 for b64 in imgs.values())
 
     shot = tmp_path / "report.png"
-    res = _run_browser(chromium, tmp_path, f"--screenshot={shot}", "--window-size=1280,2600",
-                       "--hide-scrollbars", url)
+    res = _run_browser(
+        chromium, tmp_path, f"--screenshot={shot}", "--window-size=1280,2600", "--hide-scrollbars", url
+    )
     assert res.returncode == 0 and shot.is_file(), res.stderr[-2000:]
     assert not _console_errors(res.stderr)
     img = cv2.imread(str(shot))

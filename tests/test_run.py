@@ -26,7 +26,14 @@ def demo_run(tmp_path_factory, cache_dir):
 
 @pytest.mark.slow
 def test_demo_outputs_and_accuracy(demo_run):
-    for name in ("poses.csv", "poses.mcap", "report/index.html", "poses.parquet", "config.yaml", "versions.json"):
+    for name in (
+        "poses.csv",
+        "poses.mcap",
+        "report/index.html",
+        "poses.parquet",
+        "config.yaml",
+        "versions.json",
+    ):
         assert (demo_run / name).is_file(), name
     frames = pd.read_csv(demo_run / "report" / "frames.csv")
     assert len(frames) == 5 and (frames["status"] == "ok").all()
@@ -76,12 +83,37 @@ def _cli(*args, cwd=ROOT):
     "manifest, pipeline_extra, expect",
     [
         ("missing.yaml", "", "missing.yaml: file not found"),
-        ({"name": "x", "frames": {"format": "ycbv", "root": "d"}, "models": {}, "objects": ["a"], "colour": 1},
-         "", "unknown key(s) colour"),
-        ({"name": "x", "frames": {"format": "tiff", "root": "."}, "models": {"root": str(ROOT / "demo_data/models")},
-          "objects": ["003_cracker_box"]}, "", "tiff"),
-        ({"name": "x", "frames": {"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")},
-          "models": {"root": str(ROOT / "demo_data/models")}, "objects": ["999_unicorn"]}, "", "999_unicorn"),
+        (
+            {
+                "name": "x",
+                "frames": {"format": "ycbv", "root": "d"},
+                "models": {},
+                "objects": ["a"],
+                "colour": 1,
+            },
+            "",
+            "unknown key(s) colour",
+        ),
+        (
+            {
+                "name": "x",
+                "frames": {"format": "tiff", "root": "."},
+                "models": {"root": str(ROOT / "demo_data/models")},
+                "objects": ["003_cracker_box"],
+            },
+            "",
+            "tiff",
+        ),
+        (
+            {
+                "name": "x",
+                "frames": {"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")},
+                "models": {"root": str(ROOT / "demo_data/models")},
+                "objects": ["999_unicorn"],
+            },
+            "",
+            "999_unicorn",
+        ),
         (str(DEMO), "gnc:\n  kapa: 3\n", "unknown key kapa"),
         (str(DEMO), "match:\n  direction: sideways\n", "match.direction = 'sideways'"),
     ],
@@ -95,8 +127,16 @@ def test_bad_manifest_or_pipeline_is_one_line_exit_2(tmp_path, manifest, pipelin
         manifest = str(tmp_path / "missing.yaml")
     pipeline = tmp_path / "p.yaml"
     pipeline.write_text("method: gnc_pose\n" + pipeline_extra)
-    r = _cli("run", str(pipeline), "--manifest", manifest, "--out", str(tmp_path / "out"),
-             "--cache", str(tmp_path / "cache"))
+    r = _cli(
+        "run",
+        str(pipeline),
+        "--manifest",
+        manifest,
+        "--out",
+        str(tmp_path / "out"),
+        "--cache",
+        str(tmp_path / "cache"),
+    )
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
@@ -109,7 +149,16 @@ def test_help_lists_every_command():
     for cmd in ("run", "convert", "report", "compare"):
         assert cmd in r.stdout
     r = _cli("run", "--help")
-    for opt in ("--manifest", "--out", "--cache", "--set", "--jobs", "--backend", "--scheduler", "--overwrite"):
+    for opt in (
+        "--manifest",
+        "--out",
+        "--cache",
+        "--set",
+        "--jobs",
+        "--backend",
+        "--scheduler",
+        "--overwrite",
+    ):
         assert opt in r.stdout
 
 

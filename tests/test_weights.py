@@ -9,11 +9,16 @@ from batchpose.weights import geom_weights, model_support, model_voxel_grid, sup
 def test_weights_match_formula_exactly():
     v = 0.005
     # voxel (0,0,0): 3 points; voxel (1,0,0): 1 point; voxel (-1,2,0): 2 points.
-    X = np.array([
-        [0.001, 0.001, 0.001], [0.004, 0.002, 0.003], [0.0025, 0.0049, 0.0001],
-        [0.006, 0.001, 0.001],
-        [-0.004, 0.011, 0.002], [-0.001, 0.012, 0.004],
-    ])
+    X = np.array(
+        [
+            [0.001, 0.001, 0.001],
+            [0.004, 0.002, 0.003],
+            [0.0025, 0.0049, 0.0001],
+            [0.006, 0.001, 0.001],
+            [-0.004, 0.011, 0.002],
+            [-0.001, 0.012, 0.004],
+        ]
+    )
     w = geom_weights(X, voxel_m=v, w_min=0.2)
     s = np.array([3, 3, 3, 1, 2, 2])
     expected = 0.2 + 0.8 * s / 3
