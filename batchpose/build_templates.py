@@ -47,6 +47,7 @@ def library_key(model: ObjectModel, conf: EstimatorConfig, K: np.ndarray, width:
     return config_hash(
         model.content_hash,
         model.scale,
+        conf.mesh,
         conf.render,
         conf.features,
         np.round(np.asarray(K, float), 4).tolist(),

@@ -29,6 +29,9 @@ class MeshConfig:
     """What to do with a millimetre mesh under ``units: auto``: "convert" (scale 1/1000, warn) or "refuse"."""
     mm_diagonal_threshold: float = 5.0
     """Bounding-box diagonal (in file units) above which a mesh is taken to be in millimetres (SPEC §1)."""
+    max_texture_px: int = 2048
+    """Textures larger than this (longer side) are downscaled on load: templates and refinement renders are
+    at most a few hundred pixels across, and a 4096² texture costs 64 MB of GL memory per object."""
 
 
 @dataclass(frozen=True)

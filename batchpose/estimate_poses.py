@@ -60,6 +60,19 @@ def _estimator(
     return _WORKER["estimator"]
 
 
+def _relax_loky_leak_check() -> None:
+    """Raise loky's per-worker memory-growth limit (300 MB) to 1.5 GB, our RSS budget per worker.
+
+    Loading the meshes and GL textures after loky's first measurement looks like a leak to it and gets
+    the worker restarted (and its libraries reloaded); the renderer bounds its own growth.
+    """
+    try:
+        from joblib.externals.loky import process_executor  # noqa: PLC0415
+    except ImportError:  # pragma: no cover
+        return
+    process_executor._MAX_MEMORY_LEAK_SIZE = max(process_executor._MAX_MEMORY_LEAK_SIZE, int(1.5e9))
+
+
 def estimate_chunk(
     frames: list[Frame],
     targets: list[list[str]],
@@ -69,6 +82,7 @@ def estimate_chunk(
     mesh_paths: dict[str, str],
 ) -> list[dict]:
     """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows."""
+    _relax_loky_leak_check()
     est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
     rows = []
     for frame, names in zip(frames, targets, strict=False):

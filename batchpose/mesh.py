@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from PIL import Image
 from scipy.spatial import ConvexHull
 from scipy.spatial.distance import pdist
 
@@ -81,6 +82,19 @@ def diameter(vertices: np.ndarray) -> float:
     return float(pdist(pts).max()) if len(pts) > 1 else 0.0
 
 
+def _limit_texture(mesh: trimesh.Trimesh, max_px: int) -> None:
+    """Downscale the mesh's texture image in place so its longer side is at most ``max_px``."""
+    if max_px <= 0 or mesh.visual.kind != "texture":
+        return
+    mat = mesh.visual.material
+    for attr in ("image", "baseColorTexture"):
+        img = getattr(mat, attr, None)
+        if img is not None and hasattr(img, "size") and max(img.size) > max_px:
+            scale = max_px / max(img.size)
+            size = (max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale)))
+            setattr(mat, attr, img.resize(size, Image.LANCZOS))
+
+
 def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = None) -> ObjectModel:
     """Load a textured mesh and bring it to metres.
 
@@ -127,6 +141,7 @@ def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = No
     if units == "mm":
         scale = 0.001
         loaded.apply_scale(scale)
+    _limit_texture(loaded, conf.max_texture_px)
     if not np.all(np.isfinite(loaded.vertices)):
         raise MeshError(f"{path}: mesh has NaN or infinite vertex coordinates")
     return ObjectModel(

@@ -22,7 +22,7 @@ _GL_PACKAGES = {
     "osmesa": "libosmesa6",
     "egl": "libegl1 libegl-mesa0 libgl1-mesa-dri",
 }
-RECREATE_EVERY = 300
+RECREATE_EVERY = 100
 
 # OpenCV camera (x right, y down, z forward) -> OpenGL camera (y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
