@@ -30,6 +30,10 @@ $(STAMP): pyproject.toml
 
 demo: setup
 	$(VENV)/bin/batchpose run pipelines/gnc_pose.yaml --manifest data_manifest/demo.yaml --out runs/demo
+	@echo
+	@echo "Output MCAP (open in Foxglove, see docs/foxglove.md): $(CURDIR)/runs/demo/poses.mcap"
+	@echo "HTML report:                                          $(CURDIR)/runs/demo/report/index.html"
+	@echo "BOP results:                                          $(CURDIR)/runs/demo/poses.csv"
 
 test: setup
 	$(PY) -m pytest -q

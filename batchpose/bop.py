@@ -142,9 +142,7 @@ def write_bop_csv(poses: pd.DataFrame, path: Path | str, time_per: str = "image"
 def _parse_floats(text: str, n: int, field: str, where: str) -> list[float]:
     parts = text.split()
     if len(parts) != n:
-        raise DataError(
-            f"{where}: field {field} needs {n} space-separated numbers, got {len(parts)}: {text!r}"
-        )
+        raise DataError(f"{where}: field {field} needs {n} space-separated numbers, got {len(parts)}: {text!r}")
     try:
         vals = [float(p) for p in parts]
     except ValueError:

@@ -276,9 +276,7 @@ def to_dict(conf: Any) -> dict:
 
 def config_hash(*parts: Any) -> str:
     """Stable short hash of config sections / plain values (for cache keys)."""
-    blob = json.dumps(
-        [to_dict(p) if dataclasses.is_dataclass(p) else p for p in parts], sort_keys=True, default=str
-    )
+    blob = json.dumps([to_dict(p) if dataclasses.is_dataclass(p) else p for p in parts], sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 

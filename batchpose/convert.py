@@ -75,9 +75,7 @@ def main(src: Path, out: Path, fmt: str, overwrite: bool = False) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     total = source.count()
     frames = tqdm(checked_frames(source), total=total, desc="convert", unit="frame", disable=None)
-    n = write_frames_mcap(
-        frames, out, obj_ids=source.obj_id, metadata={"format": fmt, "source": str(src.resolve())}
-    )
+    n = write_frames_mcap(frames, out, obj_ids=source.obj_id, metadata={"format": fmt, "source": str(src.resolve())})
     log.info(
         "converted %d / %d frames (%s) -> %s (%.1f MB)",
         n,

@@ -37,25 +37,19 @@ class Correspondences:
         return len(self.x)
 
     def subset(self, mask: np.ndarray) -> Correspondences:
-        return Correspondences(
-            self.x[mask], self.X[mask], self.view_ids[mask], self.templates, self.n_candidates
-        )
+        return Correspondences(self.x[mask], self.X[mask], self.view_ids[mask], self.templates, self.n_candidates)
 
 
 def flann_index(desc: np.ndarray, conf: MatchConfig):
     """A FLANN KD-tree index over (N, 128) float32 descriptors (None when N < 2)."""
     if len(desc) < 2:
         return None
-    return cv2.flann_Index(
-        np.ascontiguousarray(desc, np.float32), {"algorithm": 1, "trees": conf.flann_trees}
-    )
+    return cv2.flann_Index(np.ascontiguousarray(desc, np.float32), {"algorithm": 1, "trees": conf.flann_trees})
 
 
 def knn(index, queries: np.ndarray, k: int, conf: MatchConfig) -> tuple[np.ndarray, np.ndarray]:
     """k nearest neighbours: indices (N, k) int and L2 distances (N, k) float64."""
-    idx, d2 = index.knnSearch(
-        np.ascontiguousarray(queries, np.float32), k, params={"checks": conf.flann_checks}
-    )
+    idx, d2 = index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": conf.flann_checks})
     return idx.astype(np.int64), np.sqrt(np.maximum(d2.astype(np.float64), 0.0))
 
 

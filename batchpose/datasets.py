@@ -286,9 +286,7 @@ class BopFrameSource(FrameSource):
         if (self.root / "scene_camera.json").is_file():
             scenes = [self.root]
         else:
-            scenes = sorted(
-                p for p in self.root.iterdir() if p.is_dir() and (p / "scene_camera.json").is_file()
-            )
+            scenes = sorted(p for p in self.root.iterdir() if p.is_dir() and (p / "scene_camera.json").is_file())
         if not scenes:
             raise DataError(f"{self.root}: no BOP scenes (expected <scene>/scene_camera.json)")
         #: (scene folder, scene_id, im_id, image path, cam_K) per frame, in reading order.
@@ -393,9 +391,7 @@ def load_intrinsics(path: Path) -> Camera:
     """
     path = Path(path)
     if not path.is_file():
-        raise DataError(
-            f"{path}: intrinsics file does not exist (expected YAML with {', '.join(INTRINSICS_KEYS)})"
-        )
+        raise DataError(f"{path}: intrinsics file does not exist (expected YAML with {', '.join(INTRINSICS_KEYS)})")
     try:
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
@@ -415,9 +411,7 @@ def load_intrinsics(path: Path) -> Camera:
         width, height = int(raw["width"]), int(raw["height"])
         dist = np.asarray(raw.get("dist") or [], dtype=np.float64).reshape(-1)
     except (TypeError, ValueError) as e:
-        raise ConfigError(
-            f"{path}: intrinsics must be numbers (dist a list of numbers): {one_line(e)}"
-        ) from None
+        raise ConfigError(f"{path}: intrinsics must be numbers (dist a list of numbers): {one_line(e)}") from None
     model = str(raw.get("distortion_model") or ("plumb_bob" if dist.size else ""))
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     cam = Camera(K=K, width=width, height=height, dist=dist, distortion_model=model)
@@ -436,9 +430,7 @@ class ImagesFrameSource(FrameSource):
         self.root = _require_dir(Path(root), "images root")
         self.intrinsics = Path(intrinsics) if intrinsics is not None else self.root / "intrinsics.yaml"
         self.camera = load_intrinsics(self.intrinsics)
-        self._paths = sorted(
-            p for p in self.root.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-        )
+        self._paths = sorted(p for p in self.root.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
         if not self._paths:
             raise DataError(f"{self.root}: no .png/.jpg images")
         self._warned_size = False

@@ -41,9 +41,7 @@ def confidence(n_inliers: int, median_residual_px: float, conf: EstimatorConfig)
     """
     if n_inliers <= 0 or not np.isfinite(median_residual_px):
         return 0.0
-    c = (1.0 - np.exp(-n_inliers / conf.confidence_inliers)) * np.exp(
-        -median_residual_px / conf.confidence_residual_px
-    )
+    c = (1.0 - np.exp(-n_inliers / conf.confidence_inliers)) * np.exp(-median_residual_px / conf.confidence_residual_px)
     return float(np.clip(c, 0.0, 1.0))
 
 
@@ -129,9 +127,7 @@ class PoseEstimator:
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
         records = []
         for name in obj_names:
-            rec = self._estimate_object(
-                name, xy_q, desc_q, query_index, camera, gt_by_name.get(name), frame_id
-            )
+            rec = self._estimate_object(name, xy_q, desc_q, query_index, camera, gt_by_name.get(name), frame_id)
             rec.timings["sift"] = t_sift
             records.append(rec)
         return records
@@ -182,12 +178,8 @@ class PoseEstimator:
         if conf.match.direction == "template_to_query":
             views = None
             if conf.match.prefilter_views and conf.match.prefilter_views < lib.n_views:
-                views = vote_views(
-                    desc_q, self._library_index(name), lib, conf.match.prefilter_views, conf.match, roi
-                )
-            corr = match_template_to_query(
-                xy_q, query_index, lib, conf.match, candidate_mask=roi, views=views
-            )
+                views = vote_views(desc_q, self._library_index(name), lib, conf.match.prefilter_views, conf.match, roi)
+            corr = match_template_to_query(xy_q, query_index, lib, conf.match, candidate_mask=roi, views=views)
         else:
             sel = np.ones(len(xy_q), bool) if roi is None else roi
             corr = match_query_to_template(xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match)

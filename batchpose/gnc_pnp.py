@@ -102,9 +102,7 @@ def solve_pose(
     dist = np.zeros(0) if dist is None else np.asarray(dist, np.float64)
     timings = {"ransac": 0.0, "gnc": 0.0, "lm": 0.0}
     if n < max(conf.min_inliers, 4):
-        return PnpResult(
-            "too_few_matches", f"{n} correspondences, need {max(conf.min_inliers, 4)}", timings=timings
-        )
+        return PnpResult("too_few_matches", f"{n} correspondences, need {max(conf.min_inliers, 4)}", timings=timings)
 
     t0 = time.perf_counter()
     cv2.setRNGSeed(seed)

@@ -20,9 +20,7 @@ def write_parquet_atomic(df: pd.DataFrame, path: Path) -> Path:
     return path
 
 
-def main(
-    source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None
-) -> Path:
+def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None) -> Path:
     """Write ``run_dir/frames.parquet`` and ``run_dir/gt.parquet``; returns the frames index path.
 
     Args:
@@ -66,9 +64,7 @@ def main(
                         "t_m": np.asarray(p.cam_from_model[:3, 3], float).tolist(),
                     }
                 )
-    frames = pd.DataFrame(
-        rows, columns=["frame_id", "scene_id", "im_id", "stamp_ns", "width", "height", "K", "source"]
-    )
+    frames = pd.DataFrame(rows, columns=["frame_id", "scene_id", "im_id", "stamp_ns", "width", "height", "K", "source"])
     gt = pd.DataFrame(gt_rows, columns=["frame_id", "obj_name", "obj_id", "R", "t_m"])
     write_parquet_atomic(gt, gt_out)
     write_parquet_atomic(frames, out)

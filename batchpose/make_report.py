@@ -236,9 +236,7 @@ def _instance_table(run: RunData, per_instance: pd.DataFrame) -> pd.DataFrame:
             if c in ids.columns and c not in table.columns:
                 table[c] = table["frame_id"].map(ids[c])
     diag = [
-        c
-        for c in ("reason", "n_matches", "n_inliers", "median_residual_px", "time_total_s")
-        if c in run.poses.columns
+        c for c in ("reason", "n_matches", "n_inliers", "median_residual_px", "time_total_s") if c in run.poses.columns
     ]
     if diag:
         est = run.poses.assign(_ok=(run.poses["status"] == "ok").astype(int))
@@ -346,9 +344,7 @@ def _object_curves(per_instance: pd.DataFrame, column: str) -> list[tuple[str, n
     curves = []
     for name, color in zip(objects, _colors(len(objects)), strict=True):
         d = per_instance.loc[per_instance["obj_name"] == name, column].to_numpy(float)
-        curves.append(
-            (f"{name} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.4})
-        )
+        curves.append((f"{name} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.4}))
     d = per_instance[column].to_numpy(float)
     curves.append(
         (f"pooled (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": "black", "lw": 2.2, "ls": "--"})
@@ -491,13 +487,9 @@ def draw_overlay(
     projected = [(_project(T, sub, K, dist), _project(T, corners, K, dist), c) for T, c in poses]
     h, w = rgb.shape[:2]
     # Crop around what was drawn (with context), so a small object is visible in a thumbnail.
-    all_uv = (
-        np.concatenate([np.concatenate([a, b]) for a, b, _ in projected]) if projected else np.zeros((0, 2))
-    )
+    all_uv = np.concatenate([np.concatenate([a, b]) for a, b, _ in projected]) if projected else np.zeros((0, 2))
     all_uv = all_uv[np.all(np.isfinite(all_uv), axis=1)]
-    all_uv = all_uv[
-        (all_uv[:, 0] > -w) & (all_uv[:, 0] < 2 * w) & (all_uv[:, 1] > -h) & (all_uv[:, 1] < 2 * h)
-    ]
+    all_uv = all_uv[(all_uv[:, 0] > -w) & (all_uv[:, 0] < 2 * w) & (all_uv[:, 1] > -h) & (all_uv[:, 1] < 2 * h)]
     x0, y0, x1, y1 = 0, 0, w, h
     if len(all_uv):
         (ux0, uy0), (ux1, uy1) = all_uv.min(axis=0), all_uv.max(axis=0)
@@ -727,8 +719,7 @@ def _table(df: pd.DataFrame, id_: str, headers: Mapping[str, str] | None = None,
     headers = headers or {}
     head = "".join(f"<th>{_esc(headers.get(c, c))}</th>" for c in df.columns)
     body = "".join(
-        "<tr>" + "".join(f"<td>{_fmt(v, digits)}</td>" for v in row) + "</tr>"
-        for row in df.itertuples(index=False)
+        "<tr>" + "".join(f"<td>{_fmt(v, digits)}</td>" for v in row) + "</tr>" for row in df.itertuples(index=False)
     )
     return f'<table id="{_esc(id_)}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
 
@@ -748,9 +739,7 @@ def _results_table(summary: pd.DataFrame) -> str:
     rows = []
     for r in summary.to_dict("records"):
         cls = ' class="agg"' if r["obj_name"] in ("mean", "pooled") else ""
-        label = {"mean": "mean of objects", "pooled": "pooled (all instances)"}.get(
-            r["obj_name"], r["obj_name"]
-        )
+        label = {"mean": "mean of objects", "pooled": "pooled (all instances)"}.get(r["obj_name"], r["obj_name"])
         rows.append(
             f"<tr{cls}><td>{_esc(label)}</td><td>{int(r['n'])}</td><td>{_fmt(r['adds_auc'])}</td>"
             f'<td>{_fmt(r["add_auc"])}</td><td class="paper">{_fmt(r["paper_adds_auc"])}</td>'
@@ -766,9 +755,7 @@ def _page(title: str, body: list[str]) -> str:
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
-        f"<title>{_esc(title)}</title><style>{_CSS}</style></head>\n<body>\n"
-        + "\n".join(body)
-        + "\n</body></html>\n"
+        f"<title>{_esc(title)}</title><style>{_CSS}</style></head>\n<body>\n" + "\n".join(body) + "\n</body></html>\n"
     )
 
 
@@ -807,9 +794,7 @@ def _metadata_sections(run: RunData) -> list[str]:
         )
         out.append("<h3>Versions</h3>" + _table(vers, "versions-table"))
     if run.manifest is not None:
-        out.append(
-            "<h3>Data manifest</h3><pre>" + _esc(yaml.safe_dump(run.manifest, sort_keys=False)) + "</pre>"
-        )
+        out.append("<h3>Data manifest</h3><pre>" + _esc(yaml.safe_dump(run.manifest, sort_keys=False)) + "</pre>")
     if run.config_text:
         out.append("<h3>Resolved config</h3><pre>" + _esc(run.config_text) + "</pre>")
     for note in run.notes:
@@ -858,9 +843,7 @@ def _write_csv(df: pd.DataFrame, path: Path) -> None:
 
 
 def _score(run: RunData) -> tuple[pd.DataFrame, pd.DataFrame]:
-    points, diameters = load_model_points(
-        run.objects, run.gt["obj_name"], where=str(run.run_dir / "objects.json")
-    )
+    points, diameters = load_model_points(run.objects, run.gt["obj_name"], where=str(run.run_dir / "objects.json"))
     per_instance, summary = metrics.score(run.poses, run.gt, points, diameters)
     return per_instance, _paper_columns(summary)
 
@@ -1085,9 +1068,7 @@ def compare(run_dirs: list[Path], out: Path) -> Path:
                 row[f"add_auc[{obj}]"] = s.loc[obj, "add_auc"]
             for col, lines in curves.items():
                 d = per_instance[col].to_numpy(float)
-                lines.append(
-                    (f"{label} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.8})
-                )
+                lines.append((f"{label} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.8}))
         else:
             notes.append(f"{label}: no ground truth, so no accuracy and no curve")
         rows.append(row)

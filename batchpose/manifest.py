@@ -55,8 +55,7 @@ class Manifest:
             "frames": self.frames,
             "models": {
                 "objects": {
-                    o.name: {"mesh": str(o.mesh), "points": str(o.points) if o.points else None}
-                    for o in self.objects
+                    o.name: {"mesh": str(o.mesh), "points": str(o.points) if o.points else None} for o in self.objects
                 }
             },
             "objects": [o.name for o in self.objects],
@@ -71,9 +70,7 @@ def load_manifest(path: Path) -> Manifest:
     base = path.parent
     unknown = sorted(set(data) - _TOP_KEYS)
     if unknown:
-        raise ConfigError(
-            f"{path}: unknown key(s) {', '.join(unknown)} (expected: {', '.join(sorted(_TOP_KEYS))})"
-        )
+        raise ConfigError(f"{path}: unknown key(s) {', '.join(unknown)} (expected: {', '.join(sorted(_TOP_KEYS))})")
     for key in ("frames", "models", "objects"):
         if key not in data:
             raise ConfigError(f"{path}: missing key {key!r}")
@@ -89,9 +86,7 @@ def load_manifest(path: Path) -> Manifest:
         raise ConfigError(f"{path}: models must be a mapping with root, mesh, points")
     unknown = sorted(set(models) - _MODEL_KEYS)
     if unknown:
-        raise ConfigError(
-            f"{path}: models: unknown key(s) {', '.join(unknown)} (expected root, mesh, points)"
-        )
+        raise ConfigError(f"{path}: models: unknown key(s) {', '.join(unknown)} (expected root, mesh, points)")
     root = (base / models.get("root", ".")).resolve()
     mesh_tpl = models.get("mesh", "{name}/textured.obj")
     points_tpl = models.get("points")

@@ -172,9 +172,7 @@ STATUS_JSON_SCHEMA = {
 # Foxglove turns every glTF model from glTF's Y-up to its Z-up convention (a +90 deg rotation about x);
 # this model pose (-90 deg about x) cancels it so the mesh sits exactly in its model frame.
 _GLTF_UNDO_Y_UP = Quaternion(x=-np.sqrt(0.5), y=0.0, z=0.0, w=np.sqrt(0.5))
-_BOX_EDGES = np.array(
-    [[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]]
-)
+_BOX_EDGES = np.array([[0, 1], [2, 3], [4, 5], [6, 7], [0, 2], [1, 3], [4, 6], [5, 7], [0, 4], [1, 5], [2, 6], [3, 7]])
 _PALETTE = [
     (0.12, 0.47, 0.71),
     (1.0, 0.5, 0.05),
@@ -257,9 +255,7 @@ def _to_calib(msg: Any) -> _Calib:
     # A malformed K becomes NaN so that the frame fails as bad_camera instead of stopping the batch.
     K = K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan)
     dist = np.asarray(list(_field(msg, "D", "d")), dtype=np.float64).reshape(-1)
-    return _Calib(
-        K=K, width=int(msg.width), height=int(msg.height), dist=dist, model=str(msg.distortion_model)
-    )
+    return _Calib(K=K, width=int(msg.width), height=int(msg.height), dist=dist, model=str(msg.distortion_model))
 
 
 def _to_image(msg: Any, kind: str) -> _Image:
@@ -324,9 +320,7 @@ class McapFrameSource(FrameSource):
         CameraError: no calibration topic for the image topic, or it has no messages.
     """
 
-    def __init__(
-        self, path: Path, image_topic: str | None = None, calibration_topic: str | None = None
-    ) -> None:
+    def __init__(self, path: Path, image_topic: str | None = None, calibration_topic: str | None = None) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise DataError(f"{self.path}: MCAP file does not exist")
@@ -336,9 +330,7 @@ class McapFrameSource(FrameSource):
             f.seek(max(0, self._size - 8))
             tail = f.read(8)
         if head != MCAP_MAGIC:
-            raise DataError(
-                f"{self.path}: not an MCAP file (expected magic {MCAP_MAGIC!r} at the start, got {head!r})"
-            )
+            raise DataError(f"{self.path}: not an MCAP file (expected magic {MCAP_MAGIC!r} at the start, got {head!r})")
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
         self._counts: dict[int, int] | None = None
@@ -391,9 +383,7 @@ class McapFrameSource(FrameSource):
                 for m in reader.iter_metadata():
                     self._metadata[m.name] = dict(m.metadata)
         except _READ_ERRORS as e:
-            log.warning(
-                "%s: cannot read the MCAP summary (%s); reading the file sequentially", self.path, one_line(e)
-            )
+            log.warning("%s: cannot read the MCAP summary (%s); reading the file sequentially", self.path, one_line(e))
             return False
         return True
 
@@ -526,9 +516,7 @@ class McapFrameSource(FrameSource):
 
     # -- raw access
 
-    def iter_raw(
-        self, topics: Iterable[str] | None = None
-    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    def iter_raw(self, topics: Iterable[str] | None = None) -> Iterator[tuple[Schema | None, Channel, Message]]:
         """Yield (schema, channel, message) records, undecoded: log-time order when the file is indexed,
         file order otherwise (stopping silently where a truncated file breaks off).
 
@@ -549,18 +537,12 @@ class McapFrameSource(FrameSource):
                 except StopIteration:
                     return
                 except CRCValidationError as e:
-                    raise DataError(
-                        f"{self.path}: CRC mismatch, the file is corrupt ({one_line(e)})"
-                    ) from None
+                    raise DataError(f"{self.path}: CRC mismatch, the file is corrupt ({one_line(e)})") from None
                 except _READ_ERRORS as e:
-                    raise DataError(
-                        f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})"
-                    ) from None
+                    raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
                 yield item
 
-    def _iter_stream(
-        self, f: Any, wanted: set[str] | None
-    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    def _iter_stream(self, f: Any, wanted: set[str] | None) -> Iterator[tuple[Schema | None, Channel, Message]]:
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
         try:
@@ -595,9 +577,7 @@ class McapFrameSource(FrameSource):
                 if not self.truncated:
                     raise DataError(f"{self.path}: unexpected end of file") from None
             except _READ_ERRORS as e:
-                raise DataError(
-                    f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})"
-                ) from None
+                raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
 
     @property
     def channels(self) -> dict[int, Channel]:
@@ -640,8 +620,7 @@ class McapFrameSource(FrameSource):
             return dec(message.data)
         except (DecodeError, McapError, ValueError, IndexError, TypeError, struct.error) as e:
             raise DataError(
-                f"{self.path}:{channel.topic}: cannot decode message at log time {message.log_time} "
-                f"({one_line(e)})"
+                f"{self.path}:{channel.topic}: cannot decode message at log time {message.log_time} ({one_line(e)})"
             ) from None
 
     def calibration(self, schema: Schema | None, channel: Channel, message: Message) -> _Calib:
@@ -738,8 +717,7 @@ class McapFrameSource(FrameSource):
     def describe(self) -> str:
         gt = ", ground truth" if self.gt_topic else ""
         return (
-            f"mcap {self.path} ({self.count()} frames on {self.image_topic}, "
-            f"calibration {self.calibration_topic}{gt})"
+            f"mcap {self.path} ({self.count()} frames on {self.image_topic}, calibration {self.calibration_topic}{gt})"
         )
 
 
@@ -782,9 +760,7 @@ class _Out:
             name = schema["title"]
             sid = self._schema_ids.get(name)
             if sid is None:
-                sid = self._schema_ids[name] = self.w.register_schema(
-                    name, "jsonschema", json.dumps(schema).encode()
-                )
+                sid = self._schema_ids[name] = self.w.register_schema(name, "jsonschema", json.dumps(schema).encode())
             cid = self._channel_ids[topic] = self.w.register_channel(topic, "json", sid)
             self.topics.add(topic)
         self.w.add_message(
@@ -950,9 +926,7 @@ def mesh_to_glb(mesh: Any, max_texture_px: int = 1024) -> bytes:
             if img is None or max(img.size) <= max_texture_px:
                 continue
             scale = max_texture_px / max(img.size)
-            small = img.resize(
-                (max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale))), Image.LANCZOS
-            )
+            small = img.resize((max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale))), Image.LANCZOS)
             if small.mode == "RGB":  # trimesh embeds JPEG-format images as JPEG (else PNG, 5x larger)
                 buf = io.BytesIO()
                 small.save(buf, format="JPEG", quality=90)
@@ -1123,9 +1097,7 @@ class _PoseWriter:
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
             return
         lo, hi = self.bounds[name]
-        corners = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         cam_pts = corners @ T[:3, :3].T + T[:3, 3]
         if np.any(cam_pts[:, 2] <= 1e-6):  # box reaches behind the camera: a projection would wrap around
             return

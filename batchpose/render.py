@@ -68,9 +68,10 @@ class Renderer:
                         "PyOpenGL is too old for OSMesa (pyrender pins 3.1.0); run "
                         "`pip install PyOpenGL==3.1.10` (make setup does) or set PYOPENGL_PLATFORM=egl"
                     ) from None
+                pkg = _GL_PACKAGES.get(platform, "libosmesa6 (osmesa) or libegl1 libegl-mesa0 libgl1-mesa-dri (egl)")
                 raise RenderError(
-                    f"cannot create an offscreen GL context via {platform} ({e}); install "
-                    f"{_GL_PACKAGES.get(platform, 'libosmesa6')}"
+                    f"cannot create an offscreen GL context with PYOPENGL_PLATFORM={platform} ({e}); install "
+                    f"the Debian package(s) {pkg} (make setup does) or set PYOPENGL_PLATFORM=osmesa or egl"
                 ) from None
             self._size = (width, height)
             self._count = 0
@@ -111,9 +112,7 @@ class Renderer:
             scene = pr.Scene(ambient_light=ambient, bg_color=[0.0, 0.0, 0.0, 0.0])
             scene.add(self._meshes[key])
             # pyrender's principal point counts from pixel edges, OpenCV's from pixel centres.
-            cam = pr.IntrinsicsCamera(
-                K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=znear_m, zfar=zfar_m
-            )
+            cam = pr.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=znear_m, zfar=zfar_m)
             model_from_cam_gl = np.linalg.inv(cam_from_model) @ _CV_TO_GL
             scene.add(cam, pose=model_from_cam_gl)
             flags = pr.RenderFlags.FLAT if shading == "flat" else pr.RenderFlags.NONE

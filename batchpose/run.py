@@ -68,9 +68,7 @@ def _backend(backend: str, scheduler: str | None, jobs: int):
         try:
             client = Client(scheduler, timeout="20s")
         except OSError as e:
-            raise ConfigError(
-                f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({e})"
-            ) from None
+            raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({e})") from None
         cluster = None
     else:
         cluster = LocalCluster(n_workers=jobs, threads_per_worker=1, processes=True, dashboard_address=None)

@@ -161,8 +161,10 @@ def render_templates(
         )
         if progress is not None:
             progress(1)
+
     def cat(parts, shape, dt):
         return np.concatenate(parts).astype(dt) if parts else np.zeros(shape, dt)
+
     return TemplateLibrary(
         obj_name=model.name,
         key=key,

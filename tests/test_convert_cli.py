@@ -99,9 +99,7 @@ def test_convert_images_and_bop_in_process(tmp_path):
     make_images(tmp_path / "imgs")
     assert convert.main(tmp_path / "imgs", tmp_path / "imgs.mcap", "images") == tmp_path / "imgs.mcap"
     frames = list(McapFrameSource(tmp_path / "imgs.mcap"))
-    assert [f.image_data for f in frames] == [
-        p.read_bytes() for p in sorted((tmp_path / "imgs").glob("*.jpg"))
-    ]
+    assert [f.image_data for f in frames] == [p.read_bytes() for p in sorted((tmp_path / "imgs").glob("*.jpg"))]
     np.testing.assert_array_equal(frames[0].camera.dist, [0.1, 0, 0, 0, 0])
 
     scene = tmp_path / "bop" / "000001"
@@ -109,9 +107,7 @@ def test_convert_images_and_bop_in_process(tmp_path):
     cv2.imwrite(str(scene / "rgb" / "000004.png"), np.full((24, 32, 3), 200, np.uint8))
     (scene / "scene_camera.json").write_text(json.dumps({"4": {"cam_K": K.reshape(-1).tolist()}}))
     (scene / "scene_gt.json").write_text(
-        json.dumps(
-            {"4": [{"obj_id": 7, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [10, 20, 800]}]}
-        )
+        json.dumps({"4": [{"obj_id": 7, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [10, 20, 800]}]})
     )
     convert.main(tmp_path / "bop", tmp_path / "bop.mcap", "bop")
     src = McapFrameSource(tmp_path / "bop.mcap")

@@ -114,11 +114,7 @@ def make_bop(root: Path, seed: int = 0) -> dict:
     cams = {str(i): {"cam_K": K.reshape(-1).tolist(), "depth_scale": 0.1} for i in (1, 2)}
     (scene / "scene_camera.json").write_text(json.dumps(cams))
     P = _pose(rng)
-    gt = {
-        "1": [
-            {"cam_R_m2c": P[:, :3].reshape(-1).tolist(), "cam_t_m2c": (P[:, 3] * 1000).tolist(), "obj_id": 5}
-        ]
-    }
+    gt = {"1": [{"cam_R_m2c": P[:, :3].reshape(-1).tolist(), "cam_t_m2c": (P[:, 3] * 1000).tolist(), "obj_id": 5}]}
     (scene / "scene_gt.json").write_text(json.dumps(gt))
     return {"pose": P}
 

@@ -38,9 +38,7 @@ def textured_background(rng: np.random.Generator, w: int = 640, h: int = 480) ->
         color = tuple(int(c) for c in rng.integers(0, 256, 3))
         p = rng.integers(0, [w, h])
         if rng.random() < 0.5:
-            cv2.rectangle(
-                img, tuple(int(v) for v in p), tuple(int(v) for v in p + rng.integers(10, 120, 2)), color, -1
-            )
+            cv2.rectangle(img, tuple(int(v) for v in p), tuple(int(v) for v in p + rng.integers(10, 120, 2)), color, -1)
         else:
             cv2.circle(img, tuple(int(v) for v in p), int(rng.integers(5, 60)), color, -1)
     return img

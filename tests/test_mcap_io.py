@@ -65,9 +65,7 @@ def _pose(rng: np.random.Generator) -> np.ndarray:
 
 def _frames(n: int, ext: str = ".png", seed: int = 0) -> list[Frame]:
     rng = np.random.default_rng(seed)
-    cam = Camera(
-        K=K1, width=W, height=H, dist=np.array([0.01, -0.002, 0.0, 0.0, 0.0]), distortion_model="plumb_bob"
-    )
+    cam = Camera(K=K1, width=W, height=H, dist=np.array([0.01, -0.002, 0.0, 0.0, 0.0]), distortion_model="plumb_bob")
     return [
         Frame(
             frame_id=f"0001/{i:06d}",
@@ -87,9 +85,7 @@ def _frames(n: int, ext: str = ".png", seed: int = 0) -> list[Frame]:
 class Log:
     """A small MCAP written with the plain mcap writer (so tests control chunking and compression)."""
 
-    def __init__(
-        self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = ""
-    ) -> None:
+    def __init__(self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = "") -> None:
         self.f = open(path, "wb")  # noqa: SIM115 - closed in close()
         kw = (
             {}
@@ -125,9 +121,7 @@ class Log:
         self.f.close()
 
 
-def _calib(
-    t: int, K: np.ndarray = K1, frame_id: str = "cam_optical", w: int = W, h: int = H
-) -> CameraCalibration:
+def _calib(t: int, K: np.ndarray = K1, frame_id: str = "cam_optical", w: int = W, h: int = H) -> CameraCalibration:
     c = CameraCalibration(
         frame_id=frame_id,
         width=w,
@@ -360,9 +354,7 @@ def test_foxglove_raw_image_encodings(tmp_path, encoding):
     px = rng.integers(0, np.iinfo(dtype).max, (H, W, ch), dtype=dtype)
     log_ = Log(tmp_path / "raw.mcap")
     log_.proto("/cam/calibration", _calib(T0), T0)
-    m = RawImage(
-        frame_id="c", width=W, height=H, encoding=encoding, step=W * ch * px.itemsize, data=px.tobytes()
-    )
+    m = RawImage(frame_id="c", width=W, height=H, encoding=encoding, step=W * ch * px.itemsize, data=px.tobytes())
     log_.proto("/cam/image", m, T0)
     log_.close()
     (fr,) = McapFrameSource(tmp_path / "raw.mcap")
@@ -599,9 +591,7 @@ def test_truncated_without_complete_chunk(tmp_path):
     p = tmp_path / "cut.mcap"
     _simple_log(p)
     p.write_bytes(p.read_bytes()[:200])
-    with pytest.raises(
-        DataError, match=r"cut.mcap: truncated MCAP \(no footer/summary\) and no complete chunk"
-    ):
+    with pytest.raises(DataError, match=r"cut.mcap: truncated MCAP \(no footer/summary\) and no complete chunk"):
         McapFrameSource(p)
 
 
@@ -619,9 +609,7 @@ def test_truncated_keeps_complete_chunks_and_warns(tmp_path, caplog):
             if ci.chunk_start_offset + ci.chunk_length <= cut:
                 f.seek(ci.chunk_start_offset + 9)
                 chunk = Chunk.read(ReadDataStream(f))
-                expected += sum(
-                    isinstance(r, Message) and r.channel_id == image_ch for r in breakup_chunk(chunk)
-                )
+                expected += sum(isinstance(r, Message) and r.channel_id == image_ch for r in breakup_chunk(chunk))
     assert 0 < expected < 12
     p.write_bytes(raw[:cut])
     with caplog.at_level(logging.WARNING, logger="batchpose"):
@@ -661,13 +649,9 @@ def test_image_topic_without_calibration(tmp_path):
     log_.proto("/cam/image", _cimg(T0, b"\xff\xd8"), T0)
     log_.proto("/other/calibration", _calib(T0), T0)
     log_.close()
-    with pytest.raises(
-        CameraError, match=r"nocal.mcap:/cam/image: image topic has no calibration.*/other/calibration"
-    ):
+    with pytest.raises(CameraError, match=r"nocal.mcap:/cam/image: image topic has no calibration.*/other/calibration"):
         McapFrameSource(p)
-    assert (
-        McapFrameSource(p, calibration_topic="/other/calibration").calibration_topic == "/other/calibration"
-    )
+    assert McapFrameSource(p, calibration_topic="/other/calibration").calibration_topic == "/other/calibration"
 
 
 def test_image_topic_with_non_image_schema(tmp_path):

@@ -233,9 +233,7 @@ def test_score_summary(scored):
 def test_score_ground_truth_gives_100():
     rng = np.random.default_rng(1)
     pts = rng.normal(scale=0.05, size=(200, 3))
-    gt = pd.DataFrame(
-        [_gt_row(f"f{i}", "a", _rot_z(10 * i), np.array([0, 0, 0.5 + 0.1 * i])) for i in range(5)]
-    )
+    gt = pd.DataFrame([_gt_row(f"f{i}", "a", _rot_z(10 * i), np.array([0, 0, 0.5 + 0.1 * i])) for i in range(5)])
     est = gt.assign(status="ok", confidence=1.0)
     _, s = metrics.score(est, gt, {"a": pts}, {"a": 0.2})
     pooled = s.set_index("obj_name").loc["pooled"]

@@ -57,9 +57,7 @@ def _gt_pose(obj: str, k: int) -> np.ndarray:
     return _T(R, [-0.05, 0.0, 0.6]) if obj == "obj_a" else _T(R, [0.06, 0.01, 0.6])
 
 
-def make_run(
-    root: Path, with_gt: bool = True, frames_root: Path | None = None, shift_mm: float = 10.0
-) -> Path:
+def make_run(root: Path, with_gt: bool = True, frames_root: Path | None = None, shift_mm: float = 10.0) -> Path:
     """Write a run directory in the pipeline's layout (4 frames, 2 objects)."""
     run = root / "run"
     data = root / "data"
@@ -154,9 +152,7 @@ def make_run(
             )
         else:
             recs.append(
-                PoseRecord(
-                    fid, "obj_a", "too_few_matches", reason="4 matches < 6", obj_id=1, n_matches=4, **common
-                )
+                PoseRecord(fid, "obj_a", "too_few_matches", reason="4 matches < 6", obj_id=1, n_matches=4, **common)
             )
         # obj_b: exact three times, no row at all for the last frame.
         if k < 3:
@@ -267,9 +263,7 @@ def test_html_content(report):
         worst = _decodes(imgs["overlay-worst-1"])
         assert worst.shape[0] == 200 and abs(worst.shape[1] - 267) <= 2  # 4:3 crop
         # Both colours are drawn: ground truth green and the 10 mm-off estimate orange (BGR here).
-        assert np.any(np.all(worst == (60, 200, 40), axis=2)) and np.any(
-            np.all(worst == (0, 140, 255), axis=2)
-        )
+        assert np.any(np.all(worst == (60, 200, 40), axis=2)) and np.any(np.all(worst == (0, 140, 255), axis=2))
         assert "gallery-note" not in html
     else:
         assert 'id="gallery-note"' in html
@@ -408,9 +402,7 @@ def test_report_in_browser(report, chromium, tmp_path):
     assert all(len(b64) > 1000 for b64 in imgs.values())
 
     shot = tmp_path / "report.png"
-    res = _run_browser(
-        chromium, tmp_path, f"--screenshot={shot}", "--window-size=1280,2600", "--hide-scrollbars", url
-    )
+    res = _run_browser(chromium, tmp_path, f"--screenshot={shot}", "--window-size=1280,2600", "--hide-scrollbars", url)
     assert res.returncode == 0 and shot.is_file(), res.stderr[-2000:]
     assert not _console_errors(res.stderr)
     img = cv2.imread(str(shot))

@@ -72,9 +72,22 @@ def _bad_logs(tmp_path):
 def test_bad_logs_from_the_cli_are_one_line_exit_2(tmp_path):
     for path, expect in _bad_logs(tmp_path):
         r = subprocess.run(
-            [sys.executable, "-m", "batchpose", "run", str(PIPELINE), "--manifest", _manifest(tmp_path, path),
-             "--out", str(tmp_path / f"out-{path.stem}"), "--cache", str(tmp_path / "cache")],
-            capture_output=True, text=True, check=False,
+            [
+                sys.executable,
+                "-m",
+                "batchpose",
+                "run",
+                str(PIPELINE),
+                "--manifest",
+                _manifest(tmp_path, path),
+                "--out",
+                str(tmp_path / f"out-{path.stem}"),
+                "--cache",
+                str(tmp_path / "cache"),
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
         )
         errors = [ln for ln in r.stderr.splitlines() if ln.startswith("batchpose: error:")]
         assert r.returncode == 2, r.stderr

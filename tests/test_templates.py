@@ -1,0 +1,63 @@
+"""Template library: content, caching (a second build renders nothing) and render failures."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from batchpose import build_templates
+from batchpose.config import EstimatorConfig, RenderConfig
+from batchpose.render import get_renderer
+from tests.conftest import K_SYN
+
+
+class CountingRenderer:
+    def __init__(self):
+        self.calls = 0
+
+    def render(self, *args, **kwargs):
+        self.calls += 1
+        return get_renderer().render(*args, **kwargs)
+
+
+def test_library_points_lie_on_the_mesh(cracker_model, cracker_library):
+    lib = cracker_library
+    assert lib.n_views == 320 and len(lib.desc) == len(lib.pts3d) == len(lib.view_ids) > 5000
+    # Every back-projected keypoint is on the surface: within 2 mm of a mesh vertex/face.
+    surface, _ = trimesh.sample.sample_surface_even(cracker_model.mesh, 200_000, seed=0)
+    dist, _ = cKDTree(surface).query(lib.pts3d[::50])
+    assert np.percentile(dist, 95) < 0.002
+
+
+def test_second_build_loads_and_renders_nothing(cracker_model, tmp_path):
+    conf = EstimatorConfig(render=RenderConfig(n_views=12, image_fractions=(0.5,)))
+    r1 = CountingRenderer()
+    d1 = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r1)
+    assert r1.calls == 12
+    assert {p.name for p in d1.iterdir()} == {"views.parquet", "templates.npz", "voxels.npz"}
+    r2 = CountingRenderer()
+    d2 = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r2)
+    assert d2 == d1 and r2.calls == 0
+    lib = build_templates.load(d2)
+    assert lib.n_views == 12 and lib.views["n_keypoints"].sum() == len(lib.desc)
+    # A different render config is a different library.
+    conf2 = EstimatorConfig(render=RenderConfig(n_views=13, image_fractions=(0.5,)))
+    d3 = build_templates.main(cracker_model, conf2, K_SYN, 640, 480, tmp_path, renderer=CountingRenderer())
+    assert d3 != d1
+
+
+def test_missing_gl_backend_names_the_package():
+    code = (
+        "from batchpose.errors import RenderError\n"
+        "from batchpose.render import Renderer\n"
+        "try:\n    Renderer()._context(64, 48)\nexcept RenderError as e:\n    print(e)\n"
+    )
+    env = dict(os.environ, PYOPENGL_PLATFORM="nosuchplatform")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=False)
+    assert "PYOPENGL_PLATFORM=nosuchplatform" in r.stdout, r.stdout + r.stderr
+    assert "libosmesa6" in r.stdout
