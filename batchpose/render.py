@@ -7,6 +7,7 @@ EGL on llvmpipe). OSMesa leaks 1-3 MB per render, so the GL context is recreated
 
 from __future__ import annotations
 
+import atexit
 import os
 import threading
 
@@ -123,6 +124,17 @@ class Renderer:
         return np.ascontiguousarray(color[:, :, :3]), depth.astype(np.float32)
 
 
+    def close(self) -> None:
+        """Free the GL context (pyrender's own finaliser fails noisily during interpreter shutdown)."""
+        if self._renderer is not None:
+            try:
+                self._renderer.delete()
+            except Exception:  # noqa: BLE001 - best effort at exit
+                pass
+            self._renderer = None
+            self._meshes.clear()
+
+
 _RENDERER: Renderer | None = None
 
 
@@ -131,4 +143,5 @@ def get_renderer() -> Renderer:
     global _RENDERER
     if _RENDERER is None:
         _RENDERER = Renderer()
+        atexit.register(_RENDERER.close)
     return _RENDERER
