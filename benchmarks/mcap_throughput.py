@@ -29,14 +29,15 @@ K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
 
 def make_frames(n: int, seed: int = 0) -> list[Frame]:
     rng = np.random.default_rng(seed)
-    texture = cv2.resize(rng.integers(0, 256, (120, 160, 3), dtype=np.uint8), (2 * W, 2 * H),
-                         interpolation=cv2.INTER_CUBIC)
+    texture = cv2.resize(
+        rng.integers(0, 256, (120, 160, 3), dtype=np.uint8), (2 * W, 2 * H), interpolation=cv2.INTER_CUBIC
+    )
     texture = cv2.add(texture, rng.integers(0, 16, texture.shape, dtype=np.uint8))  # fine grain
     cam = Camera(K=K, width=W, height=H)
     frames = []
     for i in range(n):
         x, y = (i * 7) % W, (i * 5) % H
-        img = texture[y:y + H, x:x + W].copy()
+        img = texture[y : y + H, x : x + W].copy()
         cv2.rectangle(img, (50 + i % 400, 60), (150 + i % 400, 200), (255, 255, 255), -1)
         data = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 90])[1].tobytes()
         frames.append(Frame(f"{i:06d}", 0, i, i * 33_333_333, cam, "jpeg", data))
@@ -48,11 +49,20 @@ def make_records(stamps: list[int], rng: np.random.Generator) -> list[dict]:
     for s in stamps:
         R = cv2.Rodrigues(rng.normal(size=3) * 0.3)[0]
         t = [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), rng.uniform(0.5, 0.8)]
-        rows.append({
-            "frame_id": f"mcap:{s}", "stamp_ns": s, "obj_name": "box", "status": "ok", "reason": "",
-            "R": R.reshape(-1).tolist(), "t_m": t, "confidence": 0.9, "n_inliers": 60,
-            "inliers_px": rng.uniform(0, 480, 120).tolist(),
-        })
+        rows.append(
+            {
+                "frame_id": f"mcap:{s}",
+                "stamp_ns": s,
+                "obj_name": "box",
+                "status": "ok",
+                "reason": "",
+                "R": R.reshape(-1).tolist(),
+                "t_m": t,
+                "confidence": 0.9,
+                "n_inliers": 60,
+                "inliers_px": rng.uniform(0, 480, 120).tolist(),
+            }
+        )
     return rows
 
 
@@ -101,8 +111,10 @@ def main() -> None:
         write_poses_mcap(out_path, rows, {"box": glb}, input_mcap=log_path)
         dt_back = time.perf_counter() - t
 
-        print(f"log {log_path.stat().st_size / 1e6:.1f} MB, poses log {out_path.stat().st_size / 1e6:.1f} MB "
-              f"(glb {len(glb) / 1e3:.0f} kB)")
+        print(
+            f"log {log_path.stat().st_size / 1e6:.1f} MB, poses log {out_path.stat().st_size / 1e6:.1f} MB "
+            f"(glb {len(glb) / 1e3:.0f} kB)"
+        )
         print(f"write frames (convert)  : {n / dt_write:8.0f} frames/s  ({dt_write:.2f} s)")
         print(f"ingest only             : {n / dt_ingest:8.0f} frames/s  ({dt_ingest:.2f} s)")
         print(f"ingest + JPEG decode    : {n / dt_decode:8.0f} frames/s  ({dt_decode:.2f} s)")
