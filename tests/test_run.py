@@ -71,7 +71,18 @@ def test_resume_computes_only_missing_pairs(demo_run, tmp_path, cache_dir):
 def test_jobs_and_dask_give_identical_results(demo_run, tmp_path, cache_dir):
     run.main(PIPELINE, DEMO, tmp_path / "j2", cache_dir=cache_dir, jobs=2, report=False)
     pd.testing.assert_frame_equal(_csv(tmp_path / "j2" / "poses.csv"), _csv(demo_run / "poses.csv"))
-    run.main(PIPELINE, DEMO, tmp_path / "dask", cache_dir=cache_dir, jobs=2, backend="dask", report=False)
+    from dask.distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        run.main(
+            PIPELINE,
+            DEMO,
+            tmp_path / "dask",
+            cache_dir=cache_dir,
+            backend="dask",
+            scheduler=cluster.scheduler_address,
+            report=False,
+        )
     pd.testing.assert_frame_equal(_csv(tmp_path / "dask" / "poses.csv"), _csv(demo_run / "poses.csv"))
 
 
