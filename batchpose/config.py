@@ -90,14 +90,15 @@ class MatchConfig:
     """query_to_template: the ratio is taken against the nearest neighbour whose 3D point is farther than
     this from the best match's (a second view of the same surface point is not a rival)."""
     top_k_templates: int = 3
-    prefilter_views: int = 0
+    prefilter_views: int = 32
     """template_to_query: first vote for views with each frame keypoint's nearest template descriptor and
-    test only the keypoints of the ``prefilter_views`` most-voted views (0: test every view)."""
+    test only the keypoints of the ``prefilter_views`` most-voted views (0: test every view). On ycbv_dev
+    32 views halve the time per pair with no accuracy change beyond run-to-run noise."""
     prefilter_ratio: float = 0.9
     """Loose ratio test a frame keypoint must pass to vote for a view (see ``prefilter_views``)."""
     """Keep the pairs of the k templates with the most surviving matches."""
     flann_trees: int = 4
-    flann_checks: int = 64
+    flann_checks: int = 32
     roi: str = "none"
     """"none": whole image; "gt_box": oracle box from ground truth (evaluation only, never default)."""
     roi_margin_px: int = 24

@@ -6,6 +6,7 @@ Pure computation over arrays; FLANN indices are built by the caller and reused (
 
 from __future__ import annotations
 
+import ctypes
 from dataclasses import dataclass
 
 import cv2
@@ -13,6 +14,11 @@ import numpy as np
 
 from batchpose.config import MatchConfig
 from batchpose.templates import TemplateLibrary
+
+try:
+    _LIBC = ctypes.CDLL(None)
+except OSError:  # pragma: no cover - platforms without a C library handle
+    _LIBC = None
 
 
 @dataclass
@@ -40,10 +46,23 @@ class Correspondences:
         return Correspondences(self.x[mask], self.X[mask], self.view_ids[mask], self.templates, self.n_candidates)
 
 
+def seed_c_rand(seed: int = 0) -> None:
+    """Seed the generators FLANN's randomised KD-trees draw from (C ``rand()`` in older OpenCV builds,
+    OpenCV's thread RNG in newer ones), so an index does not depend on what ran before it."""
+    cv2.setRNGSeed(seed)
+    if _LIBC is not None:
+        _LIBC.srand(ctypes.c_uint(seed))
+
+
 def flann_index(desc: np.ndarray, conf: MatchConfig):
-    """A FLANN KD-tree index over (N, 128) float32 descriptors (None when N < 2)."""
+    """A FLANN KD-tree index over (N, 128) float32 descriptors (None when N < 2).
+
+    The trees are randomised; seeding first makes every index (and so every match) independent of what
+    the process built before, so results do not depend on how frames are spread over workers.
+    """
     if len(desc) < 2:
         return None
+    seed_c_rand(0)
     return cv2.flann_Index(np.ascontiguousarray(desc, np.float32), {"algorithm": 1, "trees": conf.flann_trees})
 
 

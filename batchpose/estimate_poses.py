@@ -9,7 +9,6 @@ trees are seeded per frame.
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import time
 from collections import Counter
@@ -29,17 +28,6 @@ from batchpose.mesh import load_mesh
 log = logging.getLogger("batchpose")
 
 _WORKER: dict = {}
-
-try:  # FLANN's randomised KD-trees draw from C rand(); seeding it makes matches reproducible.
-    _libc = ctypes.CDLL(None)
-except OSError:  # pragma: no cover - non-glibc platforms
-    _libc = None
-
-
-def seed_c_rand(seed: int) -> None:
-    if _libc is not None:
-        _libc.srand(ctypes.c_uint(seed))
-
 
 def _estimator(
     conf_dict: dict, lib_dirs: dict[str, str], obj_ids: dict[str, int], mesh_paths: dict[str, str]
@@ -86,7 +74,6 @@ def estimate_chunk(
     est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
     rows = []
     for frame, names in zip(frames, targets, strict=False):
-        seed_c_rand(0)
         rows.extend(r.to_row() for r in est.estimate_frame(frame, names))
     return rows
 
