@@ -148,3 +148,46 @@ def main(
         time.perf_counter() - t0,
     )
     return out
+
+
+def _build_in_worker(mesh_path: str, name: str, conf: EstimatorConfig, K, width, height, cache_dir) -> Path:
+    from batchpose.mesh import load_mesh  # noqa: PLC0415
+
+    return main(load_mesh(Path(mesh_path), conf.mesh, name=name), conf, K, width, height, cache_dir)
+
+
+def build_all(
+    models: dict[str, ObjectModel],
+    conf: EstimatorConfig,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    cache_dir: Path,
+    jobs: int = 1,
+) -> dict[str, Path]:
+    """Build (or find) every object's library; objects missing from the cache are built in parallel.
+
+    Returns:
+        obj_name -> library folder.
+    """
+    import joblib  # noqa: PLC0415
+
+    K_t, w, h = template_camera(conf, K, width, height)
+    out: dict[str, Path] = {}
+    todo = []
+    for name, model in models.items():
+        d = library_dir(cache_dir, model, library_key(model, conf, K_t, w, h))
+        if all((d / f).is_file() for f in FILES):
+            log.info("Skipping %s: template library cached (%s)", name, d)
+            out[name] = d
+        else:
+            todo.append(name)
+    if len(todo) > 1 and jobs > 1:
+        dirs = joblib.Parallel(n_jobs=min(jobs, len(todo)), backend="loky")(
+            joblib.delayed(_build_in_worker)(str(models[n].path), n, conf, K, width, height, cache_dir) for n in todo
+        )
+        out.update(zip(todo, dirs, strict=True))
+    else:
+        for n in todo:
+            out[n] = main(models[n], conf, K, width, height, cache_dir)
+    return {n: out[n] for n in models}

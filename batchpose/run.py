@@ -138,13 +138,11 @@ def main(
     K0 = __import__("numpy").asarray(first["K"], float).reshape(3, 3)
     models, lib_dirs, obj_ids = {}, {}, {}
     t0 = time.perf_counter()
+    width, height = int(first["width"]), int(first["height"])
     for spec in man.objects:
-        model = load_mesh(spec.mesh, conf.mesh, name=spec.name)
-        models[spec.name] = model
-        lib_dirs[spec.name] = build_templates.main(
-            model, conf, K0, int(first["width"]), int(first["height"]), cache_dir, overwrite=False
-        )
+        models[spec.name] = load_mesh(spec.mesh, conf.mesh, name=spec.name)
         obj_ids[spec.name] = source.obj_id(spec.name)
+    lib_dirs = build_templates.build_all(models, conf, K0, width, height, cache_dir, jobs=jobs)
     log.info("template libraries ready for %d objects in %.1f s", len(models), time.perf_counter() - t0)
     _write_text_atomic(
         run_dir / "objects.json",
