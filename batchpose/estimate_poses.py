@@ -29,6 +29,7 @@ log = logging.getLogger("batchpose")
 
 _WORKER: dict = {}
 
+
 def _estimator(
     conf_dict: dict, lib_dirs: dict[str, str], obj_ids: dict[str, int], mesh_paths: dict[str, str]
 ) -> PoseEstimator:
@@ -146,7 +147,7 @@ def main(
     for p in shard_dir.glob("*.tmp"):  # half-written shard of a killed run: never trusted
         p.unlink()
     done = done_pairs(shard_dir)
-    if out.is_file() and not overwrite and not _pending(source, conf, targets_mode, done, limit, lib_dirs):
+    if out.is_file() and not overwrite and not _pending(source, targets_mode, done, limit, lib_dirs):
         log.info("Skipping estimation: %s is complete", out)
         return out
     if done:
@@ -194,7 +195,8 @@ def main(
     return out
 
 
-def _pending(source, conf, targets_mode, done, limit, lib_dirs) -> bool:
+def _pending(source, targets_mode, done, limit, lib_dirs) -> bool:
+    """True when some (frame, object) pair of the source is not in ``done``."""
     for _ in _chunks(source, list(lib_dirs), targets_mode, done, 1, limit):
         return True
     return False

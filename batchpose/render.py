@@ -123,7 +123,6 @@ class Renderer:
             self._count += 1
         return np.ascontiguousarray(color[:, :, :3]), depth.astype(np.float32)
 
-
     def close(self) -> None:
         """Free the GL context (pyrender's own finaliser fails noisily during interpreter shutdown)."""
         if self._renderer is not None:

@@ -13,6 +13,8 @@ import platform
 import time
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import yaml
 
 from batchpose import build_templates, estimate_poses, export_mcap, ingest_frames
@@ -129,13 +131,11 @@ def main(
     objects = [o.name for o in man.objects]
     ingest_frames.main(source, objects, run_dir, overwrite=overwrite, limit=limit)
 
-    import pandas as pd
-
     frames_index = pd.read_parquet(run_dir / "frames.parquet")
     if frames_index.empty:
         raise ConfigError(f"{man.path}: the data set has no frames")
     first = frames_index.iloc[0]
-    K0 = __import__("numpy").asarray(first["K"], float).reshape(3, 3)
+    K0 = np.asarray(first["K"], float).reshape(3, 3)
     models, lib_dirs, obj_ids = {}, {}, {}
     t0 = time.perf_counter()
     width, height = int(first["width"]), int(first["height"])
