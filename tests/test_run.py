@@ -179,3 +179,43 @@ def test_score_command_scores_a_bop_csv(demo_run):
     assert r.returncode == 0, r.stderr
     pooled = [ln for ln in r.stdout.splitlines() if ln.strip().startswith("pooled")][0].split()
     assert pooled[1] == "5" and float(pooled[2]) > 80  # n, ADD-S AUC
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_without_redoing_work(demo_run, tmp_path, cache_dir):
+    """SIGKILL a real `batchpose run` once a shard is on disk; the rerun finishes only the rest."""
+    import os
+    import signal
+    import time
+
+    out = tmp_path / "killed"
+    cmd = [
+        sys.executable,
+        "-m",
+        "batchpose",
+        "run",
+        str(PIPELINE),
+        "--manifest",
+        str(DEMO),
+        "--out",
+        str(out),
+        "--cache",
+        str(cache_dir),
+        "--jobs",
+        "1",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 300
+    while time.time() < deadline and not list((out / "shards").glob("shard-*.parquet")):
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    shards = sorted((out / "shards").glob("shard-*.parquet"))
+    assert shards, "no shard was written before the kill"
+    done = sum(len(pd.read_parquet(p)) for p in shards)
+    assert 0 < done < 5 and not (out / "poses.csv").exists()
+    r = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    assert r.returncode == 0, r.stderr
+    assert f"Resuming: {done} (frame, object) pairs already estimated" in r.stderr
+    assert not list((out / "shards").glob("*.tmp"))
+    pd.testing.assert_frame_equal(_csv(out / "poses.csv"), _csv(demo_run / "poses.csv"))
