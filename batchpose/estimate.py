@@ -244,9 +244,9 @@ class PoseEstimator:
             sub = solve_pose(corr.x[sel], corr.X[sel], camera.K, camera.dist, None, conf.gnc)
             if sub.status == "ok":
                 starts.append(sub.cam_from_model)
-        best = None
-        for T in starts:
-            r = refine_pose(
+
+        def refine(T, iterations):
+            return refine_pose(
                 T,
                 xy_q,
                 desc_q,
@@ -257,9 +257,19 @@ class PoseEstimator:
                 conf.features,
                 conf.gnc,
                 lambda X: self._weights_for(name, X),
+                iterations=iterations,
             )
+
+        # One round per hypothesis to rank them, the remaining rounds for the best one only.
+        best = None
+        for T in starts:
+            r = refine(T, 1)
             if r is not None and (best is None or r.score > best.score):
                 best = r
+        if best is not None and conf.refine.iterations > 1:
+            more = refine(best.result.cam_from_model, conf.refine.iterations - 1)
+            if more is not None and more.score >= best.score:
+                best = more
         if best is not None and res.status == "ok" and best.score < res.n_inliers:
             return None  # the guided pairs explain the frame worse than the template pairs
         return best

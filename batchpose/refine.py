@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from batchpose.config import FeatureConfig, GncConfig, RefineConfig
 from batchpose.features import detect, to_gray
@@ -48,7 +49,8 @@ def guided_matches(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Match rendered keypoints to frame keypoints within ``radius_px`` of the same pixel.
 
-    Ratio test among the frame keypoints inside the radius, plus a mutual best-match check.
+    Ratio test among the frame keypoints inside the radius, plus a mutual best-match check. Descriptor
+    distances are computed only for the pairs that are close in the image (a KD-tree over positions).
 
     Args:
         xy_r, desc_r: (R, 2) rendered keypoint pixels and (R, 128) descriptors.
@@ -57,28 +59,40 @@ def guided_matches(
     Returns:
         r_idx, q_idx: (M,) int indices of matched pairs.
     """
-    if len(xy_r) == 0 or len(xy_q) < 2:
-        return np.zeros(0, int), np.zeros(0, int)
-    # Only frame keypoints inside the rendered keypoints' bounding box (+radius) can match.
-    lo, hi = xy_r.min(axis=0) - radius_px, xy_r.max(axis=0) + radius_px
-    cand = np.nonzero(np.all((xy_q >= lo) & (xy_q <= hi), axis=1))[0]
-    if len(cand) < 2:
-        return np.zeros(0, int), np.zeros(0, int)
-    q_xy, q_desc = xy_q[cand], desc_q[cand].astype(np.float64)
-    r_desc = desc_r.astype(np.float64)
-    d2 = (r_desc**2).sum(1)[:, None] + (q_desc**2).sum(1)[None, :] - 2.0 * r_desc @ q_desc.T
-    d = np.sqrt(np.maximum(d2, 0.0))
-    near = np.linalg.norm(xy_r[:, None, :] - q_xy[None, :, :], axis=2) <= radius_px
-    d = np.where(near, d, np.inf)
-    order = np.argsort(d, axis=1)[:, :2]
-    rows = np.arange(len(d))
-    best, second = d[rows, order[:, 0]], d[rows, order[:, 1]]
-    ok = np.isfinite(best) & (best < ratio * second)
-    # Mutual check: the frame keypoint's best rendered keypoint must be this one.
-    best_r_for_q = np.argmin(d, axis=0)
-    ok &= best_r_for_q[order[:, 0]] == rows
-    r_idx = np.nonzero(ok)[0]
-    return r_idx, cand[order[r_idx, 0]]
+    empty = np.zeros(0, int), np.zeros(0, int)
+    if len(xy_r) == 0 or len(xy_q) == 0:
+        return empty
+    pairs = cKDTree(xy_r).query_ball_tree(cKDTree(xy_q), r=radius_px)
+    counts = np.fromiter((len(p) for p in pairs), int, len(pairs))
+    if counts.sum() == 0:
+        return empty
+    ri = np.repeat(np.arange(len(xy_r)), counts)
+    qi = np.fromiter((j for p in pairs for j in p), int, counts.sum())
+    diff = desc_r[ri].astype(np.float32) - desc_q[qi].astype(np.float32)
+    d = np.sqrt(np.einsum("ij,ij->i", diff, diff))
+    # Per rendered keypoint: best and second-best frame keypoint inside the radius.
+    order = np.lexsort((d, ri))
+    ri, qi, d = ri[order], qi[order], d[order]
+    first = np.ones(len(ri), bool)
+    first[1:] = ri[1:] != ri[:-1]
+    start = np.nonzero(first)[0]
+    n_per = np.diff(np.append(start, len(ri)))
+    second = np.full(len(start), np.inf)
+    has2 = n_per > 1
+    second[has2] = d[start[has2] + 1]
+    ok = d[start] < ratio * second
+    # Mutual check: the frame keypoint's closest rendered keypoint (within the radius) must be this one.
+    order_q = np.lexsort((d, qi))
+    q_sorted = qi[order_q]
+    q_first = np.ones(len(q_sorted), bool)
+    q_first[1:] = q_sorted[1:] != q_sorted[:-1]
+    best_r_for_q = dict(zip(q_sorted[q_first].tolist(), ri[order_q][q_first].tolist(), strict=True))
+    r_best, q_best = ri[start], qi[start]
+    mutual = np.fromiter(
+        (best_r_for_q[q] == r for r, q in zip(r_best.tolist(), q_best.tolist(), strict=True)), bool, len(r_best)
+    )
+    ok &= mutual
+    return r_best[ok], q_best[ok]
 
 
 def refine_pose(
@@ -92,8 +106,10 @@ def refine_pose(
     feature_conf: FeatureConfig,
     gnc_conf: GncConfig,
     w_geom_fn: Callable[[np.ndarray], np.ndarray] | None = None,
+    iterations: int | None = None,
 ) -> Refined | None:
-    """Refine a pose by ``conf.iterations`` rounds of render -> SIFT -> guided match -> PnP.
+    """Refine a pose by ``iterations`` (default ``conf.iterations``) rounds of render -> SIFT -> guided
+    match -> PnP.
 
     Returns:
         The last successful round (None when the first round finds too few pairs).
@@ -101,7 +117,7 @@ def refine_pose(
     best: Refined | None = None
     T = cam_from_model
     gnc_conf = dataclasses.replace(gnc_conf, mu_final_px=conf.mu_final_px)
-    for _ in range(conf.iterations):
+    for _ in range(conf.iterations if iterations is None else iterations):
         rgb, depth = render(T)
         ys, xs = np.nonzero(depth > 0)
         if len(xs) == 0:
