@@ -4,8 +4,11 @@ On the frames the pipeline estimates (those with at least one target object):
 
 1. warms the template cache in a child process (template building is not timed here; see ``templates.py``);
 2. the floor: ``decode_image`` + ``to_gray`` + ``batchpose.features.detect`` with the pipeline's
-   FeatureConfig, in this process, median of ``--floor-repeats`` passes per frame, measured before and
-   after the pipeline runs (per frame the faster of the two counts: the shared host's speed drifts);
+   FeatureConfig, in a fresh single process, median of ``--floor-repeats`` passes per frame, measured
+   before and after the pipeline runs (per frame the faster of the two counts: the shared host's speed
+   drifts), with glibc told to keep freed large buffers (``KEEP_BUFFERS_ENV``: otherwise every SIFT call
+   page-faults fresh pyramid buffers, ~20 ms a frame, which a pipeline worker's grown heap does not pay);
+   a pass with default malloc is printed for reference;
 3. ``batchpose.run.main(..., report=False)`` with ``--jobs 1`` then ``--jobs 2``, each in a fresh child
    process and run folder, timing each stage from the outside (ingest, estimate, write = poses.csv +
    poses.mcap) while a thread samples RSS and CPU time of the process and its workers; with ``--jobs 1``
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import statistics
 import sys
 import tempfile
@@ -120,6 +124,46 @@ def measure_floor(source, wanted: set[str], conf, repeats: int, limit: int | Non
     df = pd.DataFrame(rows)
     df["floor_s"] = df["decode_s"] + df["sift_s"]
     return df
+
+
+#: glibc malloc settings for the floor passes: keep freed large blocks instead of unmapping them. With the
+#: defaults, SIFT's per-call image pyramids (tens of MB) are mmap-ed and page-faulted afresh on every call,
+#: which costs ~20 ms per 640x480 frame in a fresh process; a pipeline worker's grown heap avoids it.
+KEEP_BUFFERS_ENV = {"MALLOC_MMAP_THRESHOLD_": str(2**30), "MALLOC_TRIM_THRESHOLD_": str(2**31)}
+
+
+def _floor_child(manifest: str, pipeline: str, overrides: list[str], wanted: set[str], repeats: int, limit):
+    conf = load_estimator_config(apply_overrides(load_yaml(Path(pipeline)), list(overrides)))
+    man = load_manifest(Path(manifest))
+    source = open_frames(man.frames, man.path.parent)
+    me = psutil.Process()
+    cpu0, sys0, t0 = sum(me.cpu_times()[:2]), RssSampler._system_busy(), time.perf_counter()
+    df = measure_floor(source, wanted, conf, repeats, limit)
+    dt = time.perf_counter() - t0
+    cores = (sum(me.cpu_times()[:2]) - cpu0) / dt
+    return df, cores, max(RssSampler._system_busy() - sys0 - cores * dt, 0.0) / dt, cv2.getNumThreads()
+
+
+def floor_pass(args, wanted: set[str], keep_buffers: bool = True) -> tuple[pd.DataFrame, float, float]:
+    """The floor in a fresh process: per-frame table, cores it kept busy, cores other processes kept busy.
+
+    With ``keep_buffers`` the process runs with :data:`KEEP_BUFFERS_ENV`, so the floor is not inflated by
+    allocator page faults that the pipeline's own SIFT call does not pay.
+    """
+    saved = {k: os.environ.get(k) for k in KEEP_BUFFERS_ENV}
+    if keep_buffers:
+        os.environ.update(KEEP_BUFFERS_ENV)
+    try:
+        df, cores, other, _ = run_in_child(
+            _floor_child, args.manifest, args.pipeline, args.set, wanted, args.floor_repeats, args.limit
+        )
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return df, cores, other
 
 
 def shard_throughput(run_dir: Path) -> tuple[float, float]:
@@ -223,7 +267,8 @@ def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
 
-    conf = load_estimator_config(apply_overrides(load_yaml(Path(args.pipeline)), list(args.set)), where=args.pipeline)
+    # fail early (one line) on a bad pipeline or manifest
+    load_estimator_config(apply_overrides(load_yaml(Path(args.pipeline)), list(args.set)), where=args.pipeline)
     man = load_manifest(Path(args.manifest))
     source = open_frames(man.frames, man.path.parent)
     objects = [o.name for o in man.objects]
@@ -244,16 +289,8 @@ def main() -> int:
     )
 
     # 2. the floor
-    def floor_pass() -> tuple[pd.DataFrame, float, float]:
-        """The floor, the cores it kept busy, and the cores other processes kept busy meanwhile."""
-        me = psutil.Process()
-        cpu0, sys0, t0 = sum(me.cpu_times()[:2]), RssSampler._system_busy(), time.perf_counter()
-        df = measure_floor(source, set(n_targets), conf, args.floor_repeats, args.limit)
-        dt = time.perf_counter() - t0
-        cores = (sum(me.cpu_times()[:2]) - cpu0) / dt
-        return df, cores, max(RssSampler._system_busy() - sys0 - cores * dt, 0.0) / dt
-
-    floor_before, floor_cores, floor_other = floor_pass()
+    floor_plain = floor_pass(args, set(n_targets), keep_buffers=False)[0]
+    floor_before, floor_cores, floor_other = floor_pass(args, set(n_targets))
 
     # 3. the pipeline, jobs 1 then jobs 2, each run.main in a fresh process (memory and caches start clean)
     with tempfile.TemporaryDirectory(prefix="bp-bench-") as tmp:
@@ -269,7 +306,7 @@ def main() -> int:
         acc = accuracy(runs[1]["run_dir"], base / "compare")
 
     # the floor again: per frame, the faster of the two passes (the host's speed drifts; a low floor is strict)
-    floor_after, cores_after, other_after = floor_pass()
+    floor_after, cores_after, other_after = floor_pass(args, set(n_targets))
     floor = floor_before.set_index("frame_id")
     after = floor_after.set_index("frame_id").reindex(floor.index)
     faster = after["floor_s"] < floor["floor_s"]
@@ -281,7 +318,8 @@ def main() -> int:
     print(
         f"\n## Floor (decode + SIFT, 1 process, {len(floor)} frames, {floor['n_kp'].mean():.0f} keypoints/frame; "
         f"per frame the median of {args.floor_repeats} passes, the faster of a measurement before and after the "
-        f"pipeline runs: {ms(floor_before['floor_s'].mean())} / {ms(floor_after['floor_s'].mean())} ms)"
+        f"pipeline runs: {ms(floor_before['floor_s'].mean())} / {ms(floor_after['floor_s'].mean())} ms; "
+        f"glibc keeps freed large buffers, see floor_pass)"
     )
     print(
         table(
@@ -297,6 +335,11 @@ def main() -> int:
     print(
         f"floor throughput: {1 / f_mean:.2f} frames/s in one process (OpenCV threads: {cv2.getNumThreads()}, "
         f"{floor_cores:.2f} cores busy on average; other processes: {floor_other:.2f} cores)"
+    )
+    print(
+        f"the same floor with glibc's default malloc in a fresh process: {ms(floor_plain['floor_s'].mean())} ms "
+        f"(SIFT {ms(floor_plain['sift_s'].mean())} ms) -- the difference is page faults on SIFT's freshly "
+        "mapped buffers"
     )
 
     r1, r2 = runs[1], runs[2]
@@ -430,6 +473,8 @@ def main() -> int:
         ["--jobs 1", "run process (estimates in-process)", f"{r1['rss'].peak('main') / MB:.0f}"],
     ]
     for pid, peak in sorted(r2["rss"].peak_by_pid("worker").items()):
+        if peak < 16 * MB:  # a short-lived helper, not a worker
+            continue
         rss_rows.append(["--jobs 2", f"worker pid {pid}", f"{peak / MB:.0f}"])
     rss_rows.append(["--jobs 2", "run process (dispatch, shards, write)", f"{r2['rss'].peak('main') / MB:.0f}"])
     print("\n## Peak RSS")
