@@ -156,6 +156,31 @@ class RefineConfig:
     hypotheses: int = 4
     """Also refine poses solved from each of the best templates alone, up to this many hypotheses in all,
     and keep the one with the most guided inliers."""
+    flips: bool = True
+    """Also try the best hypothesis turned 180 degrees about each of the mesh's principal axes (the poses a
+    texture-symmetric object is most often confused with); keep whichever has the most guided inliers."""
+
+
+@dataclass(frozen=True)
+class FineConfig:
+    """Coarse-to-fine matching (batchpose's addition): after the whole-frame pass, find the object's box
+    and match again inside it, upsampled, against every template view."""
+
+    enabled: bool = True
+    upsample: float = 2.0
+    """Scale the crop by this factor before SIFT (small, blurred objects give few keypoints at 1x)."""
+    max_side_px: int = 1024
+    """Lower the upsampling factor so the scaled crop's longer side stays within this."""
+    margin: float = 0.15
+    """Grow the box by this fraction of its size on every side (the coarse pose may be off)."""
+    margin_px: int = 16
+    """... plus this many pixels."""
+    prefilter_views: int = 32
+    """Views tested inside the box, chosen by the crop's keypoints' votes as in ``match.prefilter_views``
+    (0: every view, which costs about twice the time for no measured gain on ycbv_dev)."""
+    cluster_radius_px: float = 48.0
+    """Without a coarse pose: the box is that of the matched keypoints near the densest of them, within
+    twice this radius."""
 
 
 @dataclass(frozen=True)
@@ -176,6 +201,7 @@ class EstimatorConfig:
     weights: WeightsConfig = field(default_factory=WeightsConfig)
     gnc: GncConfig = field(default_factory=GncConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    fine: FineConfig = field(default_factory=FineConfig)
 
 
 _CHOICES = {
@@ -256,6 +282,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: render.n_views and match.top_k_templates must be >= 1")
     if conf.weights.voxel_m <= 0:
         raise ConfigError(f"{where}: weights.voxel_m must be positive, got {conf.weights.voxel_m}")
+    if conf.fine.upsample < 1 or conf.fine.max_side_px < 32:
+        raise ConfigError(f"{where}: fine.upsample must be >= 1 and fine.max_side_px >= 32")
     if not 0 < conf.gnc.gamma < 1:
         raise ConfigError(f"{where}: gnc.gamma must be in (0, 1), got {conf.gnc.gamma}")
     return conf

@@ -54,6 +54,22 @@ def check_image(rgb: np.ndarray, where: str = "image") -> None:
         raise ImageError(f"{where}: image is blank (every pixel is {int(rgb.max())})")
 
 
+def fine_keypoints(gray: np.ndarray, box: tuple[int, int, int, int], conf: EstimatorConfig, sift=None):
+    """SIFT inside ``box`` (x0, y0, x1, y1), upsampled by ``conf.fine.upsample`` (capped by max_side_px).
+
+    Returns:
+        xy (N, 2) float32 in full-image pixels and descriptors (N, 128) float32.
+    """
+    x0, y0, x1, y1 = box
+    crop = gray[y0:y1, x0:x1]
+    s = max(1.0, min(conf.fine.upsample, conf.fine.max_side_px / max(crop.shape)))
+    if s > 1.0:
+        crop = cv2.resize(crop, None, fx=s, fy=s, interpolation=cv2.INTER_CUBIC)
+    xy, desc = detect(crop, conf.features, sift=sift)
+    xy = (xy + 0.5) / s - 0.5 + np.array([x0, y0], np.float32)
+    return xy.astype(np.float32), desc
+
+
 class PoseEstimator:
     """Estimates poses of objects whose template libraries it holds.
 
@@ -81,6 +97,7 @@ class PoseEstimator:
         self._sift = make_sift(conf.features)
         self._lib_index: dict[str, object] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._flip_cache: dict[str, list[np.ndarray]] = {}
 
     # -- per-object caches -------------------------------------------------------------------------
     def _library_index(self, name: str):
@@ -119,7 +136,8 @@ class PoseEstimator:
             if name not in self.libraries:
                 raise BatchposeError(f"{frame_id}: no template library for object {name!r}")
         t0 = time.perf_counter()
-        xy_q, desc_q = detect(to_gray(rgb), self.conf.features, sift=self._sift)
+        gray = to_gray(rgb)
+        xy_q, desc_q = detect(gray, self.conf.features, sift=self._sift)
         t_sift = time.perf_counter() - t0
         query_index = None
         if self.conf.match.direction == "template_to_query":
@@ -127,7 +145,7 @@ class PoseEstimator:
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
         records = []
         for name in obj_names:
-            rec = self._estimate_object(name, xy_q, desc_q, query_index, camera, gt_by_name.get(name), frame_id)
+            rec = self._estimate_object(name, gray, xy_q, desc_q, query_index, camera, gt_by_name.get(name), frame_id)
             rec.timings["sift"] = t_sift
             records.append(rec)
         return records
@@ -161,6 +179,7 @@ class PoseEstimator:
     def _estimate_object(
         self,
         name: str,
+        gray: np.ndarray,
         xy_q: np.ndarray,
         desc_q: np.ndarray,
         query_index,
@@ -171,38 +190,35 @@ class PoseEstimator:
         conf = self.conf
         if conf.method == "tp_ub":
             return self._tp_ub(name, gt_pose, frame_id)
-        lib = self.libraries[name]
         timings: dict[str, float] = {}
+        rec = PoseRecord(frame_id, name, "ok", obj_id=self.obj_ids.get(name, 0), timings=timings)
         t0 = time.perf_counter()
         roi = self._roi_mask(xy_q, camera, gt_pose, name)
-        if conf.match.direction == "template_to_query":
-            views = None
-            if conf.match.prefilter_views and conf.match.prefilter_views < lib.n_views:
-                views = vote_views(desc_q, self._library_index(name), lib, conf.match.prefilter_views, conf.match, roi)
-            corr = match_template_to_query(xy_q, query_index, lib, conf.match, candidate_mask=roi, views=views)
-        else:
-            sel = np.ones(len(xy_q), bool) if roi is None else roi
-            corr = match_query_to_template(xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match)
+        corr = self._match(name, xy_q, desc_q, query_index, roi, conf.match.prefilter_views)
         timings["match"] = time.perf_counter() - t0
-        rec = PoseRecord(frame_id, name, "ok", obj_id=self.obj_ids.get(name, 0), timings=timings)
+        res = self._solve(name, corr, camera, timings)
+        passes = [(res, corr, xy_q, desc_q)]
+        if conf.fine.enabled:
+            t0 = time.perf_counter()
+            fine = self._fine_pass(name, gray, res, corr, camera, gt_pose)
+            timings["fine"] = time.perf_counter() - t0
+            if fine is not None:
+                passes.insert(0, fine)
+        # The base result: the pass with the most inliers (the fine pass on ties).
+        res, corr, xy_k, desc_k = max(passes, key=lambda p: p[0].n_inliers if p[0] and p[0].status == "ok" else -1)
         rec.n_matches = len(corr)
         rec.templates = corr.templates
-        if len(corr) < conf.min_matches:
-            rec.status = "too_few_matches"
-            rec.reason = f"{len(corr)} matches after the ratio test, need {conf.min_matches}"
-            return rec
-        t0 = time.perf_counter()
-        w = self._weights(name, corr)
-        timings["weights"] = time.perf_counter() - t0
-        res = solve_pose(corr.x, corr.X, camera.K, camera.dist, w, conf.gnc)
-        timings.update(res.timings)
         x_used = corr.x
         if self._can_refine(name):
             t0 = time.perf_counter()
-            refined = self._refine(name, res, corr, camera, xy_q, desc_q)
+            refined = self._refine(name, passes, camera, xy_k, desc_k)
             timings["refine"] = time.perf_counter() - t0
             if refined is not None:
                 res, x_used = refined.result, refined.x
+        if res is None:
+            rec.status = "too_few_matches"
+            rec.reason = f"{len(corr)} matches after the ratio test, need {conf.min_matches}"
+            return rec
         rec.status, rec.reason = res.status, res.reason
         if not res.status == "ok":
             return rec
@@ -213,11 +229,89 @@ class PoseEstimator:
         rec.confidence = confidence(rec.n_inliers, rec.median_residual_px, conf)
         return rec
 
+    def _match(self, name, xy_q, desc_q, query_index, roi, prefilter_views: int) -> Correspondences:
+        """2D-3D pairs between the frame keypoints and the object's library (SPEC §2)."""
+        conf, lib = self.conf, self.libraries[name]
+        if conf.match.direction == "template_to_query":
+            views = None
+            if prefilter_views and prefilter_views < lib.n_views:
+                views = vote_views(desc_q, self._library_index(name), lib, prefilter_views, conf.match, roi)
+            return match_template_to_query(xy_q, query_index, lib, conf.match, candidate_mask=roi, views=views)
+        sel = np.ones(len(xy_q), bool) if roi is None else roi
+        return match_query_to_template(xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match)
+
+    def _solve(self, name: str, corr: Correspondences, camera: Camera, timings: dict[str, float]):
+        """Weights + RANSAC + GNC + LM on the pairs; None when there are too few pairs."""
+        if len(corr) < self.conf.min_matches:
+            return None
+        t0 = time.perf_counter()
+        w = self._weights(name, corr)
+        timings["weights"] = timings.get("weights", 0.0) + time.perf_counter() - t0
+        res = solve_pose(corr.x, corr.X, camera.K, camera.dist, w, self.conf.gnc)
+        for k, v in res.timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+        return res
+
+    def _object_box(self, name, res, corr: Correspondences, camera: Camera, gt_pose) -> tuple | None:
+        """The object's image box (x0, y0, x1, y1), grown by the fine margins and clipped; None if unknown.
+
+        From the ground-truth pose with the ``gt_box`` oracle, else from the coarse pose (with its inliers),
+        else around the densest cluster of matched keypoints.
+        """
+        fc = self.conf.fine
+        pts = None
+        coarse_ok = res is not None and res.status == "ok"
+        pose = gt_pose if self.conf.match.roi == "gt_box" else (res.cam_from_model if coarse_ok else None)
+        if pose is not None:
+            X = self.libraries[name].pts3d.astype(np.float64)
+            z = X @ pose[2, :3] + pose[2, 3]
+            if np.all(z > 1e-3):
+                proj, _ = cv2.projectPoints(X, cv2.Rodrigues(pose[:3, :3])[0], pose[:3, 3], camera.K, camera.dist)
+                pts = proj.reshape(-1, 2)
+                if coarse_ok and pose is not gt_pose:
+                    pts = np.vstack([pts, corr.x[res.inliers]])
+        if pts is None:
+            if self.conf.match.roi == "gt_box" or len(corr) < self.conf.min_matches:
+                return None
+            d = np.linalg.norm(corr.x[:, None] - corr.x[None], axis=2)
+            centre = corr.x[np.argmax((d < fc.cluster_radius_px).sum(axis=1))]
+            pts = corr.x[np.linalg.norm(corr.x - centre, axis=1) < 2 * fc.cluster_radius_px]
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        grow = fc.margin * (hi - lo) + fc.margin_px
+        x0, y0 = np.floor(np.maximum(lo - grow, 0)).astype(int)
+        x1, y1 = np.ceil(np.minimum(hi + grow, [camera.width, camera.height])).astype(int)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            return None
+        return int(x0), int(y0), int(x1), int(y1)
+
+    def _fine_pass(self, name, gray, res, corr, camera, gt_pose):
+        """Match again inside the object's box, upsampled: (result, pairs, keypoints, descriptors) or None."""
+        box = self._object_box(name, res, corr, camera, gt_pose)
+        if box is None:
+            return None
+        xy_f, desc_f = fine_keypoints(gray, box, self.conf, self._sift)
+        index = flann_index(desc_f, self.conf.match) if self.conf.match.direction == "template_to_query" else None
+        corr_f = self._match(name, xy_f, desc_f, index, None, self.conf.fine.prefilter_views)
+        res_f = self._solve(name, corr_f, camera, {})
+        if res_f is None:
+            return None
+        return res_f, corr_f, xy_f, desc_f
+
+    def _flips(self, name: str) -> list[np.ndarray]:
+        if name not in self._flip_cache:
+            self._flip_cache[name] = self.models[name].flips()
+        return self._flip_cache[name]
+
     def _can_refine(self, name: str) -> bool:
         return self.conf.refine.enabled and self.renderer is not None and name in self.models
 
-    def _refine(self, name, res, corr: Correspondences, camera: Camera, xy_q, desc_q):
-        """Refine the pose (and, with ``refine.hypotheses`` > 1, per-template poses); best guided score."""
+    def _refine(self, name, passes, camera: Camera, xy_q, desc_q):
+        """Refine the passes' poses (and, with ``refine.hypotheses`` > 1, per-template poses); best guided score.
+
+        Args:
+            passes: (result, pairs, ...) of the coarse and fine passes, best first.
+            xy_q, desc_q: the keypoints guided matching uses.
+        """
         conf = self.conf
         model = self.models[name]
 
@@ -234,16 +328,18 @@ class PoseEstimator:
                 conf.render.zfar_m,
             )
 
-        starts = [res.cam_from_model] if res.status == "ok" else []
-        for v in corr.templates:
-            if len(starts) >= conf.refine.hypotheses:
-                break
-            sel = corr.view_ids == v
-            if sel.sum() < conf.gnc.min_inliers:
-                continue
-            sub = solve_pose(corr.x[sel], corr.X[sel], camera.K, camera.dist, None, conf.gnc)
-            if sub.status == "ok":
-                starts.append(sub.cam_from_model)
+        ok = [p[0] for p in passes if p[0] is not None and p[0].status == "ok"]
+        starts = [r.cam_from_model for r in ok][: conf.refine.hypotheses]
+        for _res, corr, *_ in passes:
+            for v in corr.templates:
+                if len(starts) >= conf.refine.hypotheses:
+                    break
+                sel = corr.view_ids == v
+                if sel.sum() < conf.gnc.min_inliers:
+                    continue
+                sub = solve_pose(corr.x[sel], corr.X[sel], camera.K, camera.dist, None, conf.gnc)
+                if sub.status == "ok":
+                    starts.append(sub.cam_from_model)
 
         def refine(T, iterations):
             return refine_pose(
@@ -270,7 +366,18 @@ class PoseEstimator:
             more = refine(best.result.cam_from_model, conf.refine.iterations - 1)
             if more is not None and more.score >= best.score:
                 best = more
-        if best is not None and res.status == "ok" and best.score < res.n_inliers:
+        if best is not None and conf.refine.flips:
+            # A turned hypothesis starts up to ~20 degrees off, so one that finds a third of the best score in
+            # its first round gets the remaining rounds before it is compared.
+            base = best.result.cam_from_model
+            for F in self._flips(name):
+                r = refine(base @ F, 1)
+                if r is not None and conf.refine.iterations > 1 and 3 * r.score >= best.score:
+                    more = refine(r.result.cam_from_model, conf.refine.iterations - 1)
+                    r = more if more is not None and more.score >= r.score else r
+                if r is not None and r.score > best.score:
+                    best = r
+        if best is not None and ok and best.score < max(r.n_inliers for r in ok):
             return None  # the guided pairs explain the frame worse than the template pairs
         return best
 

@@ -47,6 +47,26 @@ class ObjectModel:
         """(3,) centre of the axis-aligned bounding box, model frame, metres."""
         return self.mesh.bounds.mean(axis=0)
 
+    def flips(self) -> list[np.ndarray]:
+        """(4, 4) model-frame turns of 180 degrees about each principal axis through the surface centroid.
+
+        Boxes, cans and bottles look alike turned this way (shape and often texture); the turned poses are
+        the hypotheses a texture-symmetric match most often confuses with the true one.
+        """
+        tri = self.mesh.triangles_center
+        w = self.mesh.area_faces
+        c = (tri * w[:, None]).sum(axis=0) / w.sum()
+        d = tri - c
+        _, vecs = np.linalg.eigh((d * w[:, None]).T @ d)
+        out = []
+        for a in vecs.T:
+            R = 2.0 * np.outer(a, a) - np.eye(3)  # 180 degrees about unit axis a
+            F = np.eye(4)
+            F[:3, :3] = R
+            F[:3, 3] = c - R @ c
+            out.append(F)
+        return out
+
 
 def _referenced_files(path: Path) -> list[Path]:
     """The mesh file plus the MTL and texture files it references (for content hashing)."""

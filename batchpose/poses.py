@@ -17,7 +17,7 @@ import numpy as np
 
 STATUSES = ("ok", "too_few_matches", "pnp_failed", "bad_image", "bad_camera", "error")
 #: Per-(frame, object) timing stages, in pipeline order.
-STAGES = ("decode", "sift", "match", "weights", "ransac", "gnc", "lm", "refine")
+STAGES = ("decode", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine")
 
 
 @dataclass

@@ -1,0 +1,88 @@
+"""Coarse-to-fine keypoints and the turned (flip) hypotheses of the refinement (issue 7)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from batchpose.config import EstimatorConfig, FineConfig, RefineConfig
+from batchpose.correspondences import Correspondences
+from batchpose.estimate import PoseEstimator, fine_keypoints
+from batchpose.features import detect, to_gray
+from batchpose.frames import Camera
+from batchpose.gnc_pnp import PnpResult
+from batchpose.render import get_renderer
+from tests.conftest import K_SYN
+from tests.test_estimate_synthetic import compose, random_pose
+
+
+def rot_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(A[:3, :3] @ B[:3, :3].T) - 1) / 2, -1, 1))))
+
+
+def test_flips_are_half_turns_about_the_box_axes(cracker_model):
+    flips = cracker_model.flips()
+    assert len(flips) == 3
+    tri, w = cracker_model.mesh.triangles_center, cracker_model.mesh.area_faces
+    centroid = (tri * w[:, None]).sum(axis=0) / w.sum()
+    axes = []
+    for F in flips:
+        R = F[:3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+        assert np.linalg.det(R) == pytest.approx(1.0)
+        assert rot_deg(R, np.eye(3)) == pytest.approx(180.0, abs=1e-4)
+        np.testing.assert_allclose(F @ F, np.eye(4), atol=1e-9)  # a half turn undoes itself
+        np.testing.assert_allclose(R @ centroid + F[:3, 3], centroid, atol=1e-9)
+        w_, v = np.linalg.eigh(R)
+        axes.append(v[:, np.argmax(w_)])  # eigenvalue +1: the axis
+    # The bundled cracker box is modelled with its edges along the model axes: each flip turns about one.
+    dots = np.abs(np.array(axes))
+    assert np.all(dots.max(axis=1) > 0.98), dots
+    assert sorted(dots.argmax(axis=1).tolist()) == [0, 1, 2]
+
+
+def test_fine_keypoints_land_on_the_same_pixels(cracker_model):
+    rng = np.random.default_rng(5)
+    T = random_pose(rng, cracker_model.center_m)
+    img = compose(rng, cracker_model, T)
+    gray = to_gray(img)
+    conf = EstimatorConfig()
+    xy_full, _ = detect(gray, conf.features)
+    box = (200, 120, 440, 360)
+    xy_up, _ = fine_keypoints(gray, box, conf)
+    for up in (1.0, 2.0):
+        c = dataclasses.replace(conf, fine=FineConfig(upsample=up))
+        xy_f, desc_f = fine_keypoints(gray, box, c)
+        assert len(xy_f) == len(desc_f) > 50
+        assert np.all((xy_f >= [box[0] - 1, box[1] - 1]) & (xy_f <= [box[2], box[3]]))
+    assert len(xy_up) > 1.5 * len(fine_keypoints(gray, box, dataclasses.replace(conf, fine=FineConfig(upsample=1)))[0])
+    # Keypoints found at 1x well inside the box are found again at 2x, at the same place (sub-pixel).
+    inner = np.all((xy_full > [box[0] + 20, box[1] + 20]) & (xy_full < [box[2] - 20, box[3] - 20]), axis=1)
+    d = np.linalg.norm(xy_full[inner][:, None] - xy_up[None], axis=2).min(axis=1)
+    assert inner.sum() > 20
+    assert np.median(d) < 0.5, np.median(d)
+
+
+@pytest.mark.parametrize("flips", [True, False])
+def test_refinement_turns_a_flipped_pose_back(cracker_model, cracker_library, flips):
+    """Start the refinement from the true pose turned 180 degrees about the box's vertical axis (the other
+    face shows, same silhouette): with flips on it returns the true pose, without it cannot."""
+    rng = np.random.default_rng(21)
+    T = random_pose(rng, cracker_model.center_m)
+    img = compose(rng, cracker_model, T)
+    xy_q, desc_q = detect(to_gray(img), EstimatorConfig().features)
+    conf = dataclasses.replace(EstimatorConfig(), refine=RefineConfig(flips=flips))
+    est = PoseEstimator(
+        conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
+    )
+    F = max(cracker_model.flips(), key=lambda F: abs(np.linalg.eigh(F[:3, :3])[1][2, -1]))  # about model z
+    start = PnpResult("ok", cam_from_model=T @ F, inliers=np.ones(6, bool))
+    none = Correspondences(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int32), (), 0)
+    out = est._refine(cracker_model.name, [(start, none, xy_q, desc_q)], Camera(K_SYN, 640, 480), xy_q, desc_q)
+    if flips:
+        assert out is not None and rot_deg(out.result.cam_from_model, T) < 2.0
+        assert np.linalg.norm(out.result.cam_from_model[:3, 3] - T[:3, 3]) < 0.01
+    else:
+        assert out is None or rot_deg(out.result.cam_from_model, T) > 90
