@@ -153,6 +153,8 @@ class RefineConfig:
     """Ratio test among the frame keypoints within the radius."""
     mu_final_px: float = 1.5
     """GNC's final scale for the guided pairs (their keypoint noise is real-image noise, not 0.5 px)."""
+    gnc: bool = True
+    """Solve the guided pairs with GNC (as ``gnc.enabled``); false: RANSAC-PnP + LM over all its inliers."""
     hypotheses: int = 4
     """Also refine poses solved from each of the best templates alone, up to this many hypotheses in all,
     and keep the one with the most guided inliers."""

@@ -10,12 +10,10 @@ trees are seeded per frame.
 from __future__ import annotations
 
 import logging
-import os
 import time
 from collections import Counter
 from pathlib import Path
 
-import cv2
 import joblib
 import pandas as pd
 from tqdm import tqdm
@@ -71,16 +69,9 @@ def estimate_chunk(
     lib_dirs: dict[str, str],
     obj_ids: dict[str, int],
     mesh_paths: dict[str, str],
-    cv_threads: int = 0,
 ) -> list[dict]:
-    """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows.
-
-    ``cv_threads`` > 0 caps OpenCV's threads in this process (SIFT would otherwise use every core in every
-    worker, and two workers on two cores would fight over them).
-    """
+    """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows."""
     _relax_loky_leak_check()
-    if cv_threads > 0 and cv2.getNumThreads() != cv_threads:
-        cv2.setNumThreads(cv_threads)
     est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
     rows = []
     for frame, names in zip(frames, targets, strict=False):
@@ -168,9 +159,8 @@ def main(
     total = source.count() if limit is None else min(source.count(), limit)
     t0 = time.perf_counter()
     new_pairs = 0
-    cv_threads = max(1, (os.cpu_count() or 1) // jobs) if backend == "loky" else 0
     tasks = (
-        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs, cv_threads)
+        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs)
         for f, t in _chunks(source, objects, targets_mode, done, chunk_size, limit)
     )
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)

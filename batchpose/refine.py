@@ -116,7 +116,7 @@ def refine_pose(
     """
     best: Refined | None = None
     T = cam_from_model
-    gnc_conf = dataclasses.replace(gnc_conf, mu_final_px=conf.mu_final_px)
+    gnc_conf = dataclasses.replace(gnc_conf, mu_final_px=conf.mu_final_px, enabled=gnc_conf.enabled and conf.gnc)
     for _ in range(conf.iterations if iterations is None else iterations):
         rgb, depth = render(T)
         ys, xs = np.nonzero(depth > 0)

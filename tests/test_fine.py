@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from batchpose.config import EstimatorConfig, FineConfig, RefineConfig
+from batchpose.config import EstimatorConfig, FineConfig, RefineConfig, load_estimator_config, load_yaml
 from batchpose.correspondences import Correspondences
 from batchpose.estimate import PoseEstimator, fine_keypoints
 from batchpose.features import detect, to_gray
@@ -86,3 +87,13 @@ def test_refinement_turns_a_flipped_pose_back(cracker_model, cracker_library, fl
         assert np.linalg.norm(out.result.cam_from_model[:3, 3] - T[:3, 3]) < 0.01
     else:
         assert out is None or rot_deg(out.result.cam_from_model, T) > 90
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (Path(__file__).parent.parent / "pipelines").glob("*.yaml")))
+def test_every_bundled_pipeline_loads(name):
+    """Each preset in pipelines/ is a valid config; fast and paper turn the fine pass off, the default keeps it."""
+    conf = load_estimator_config(load_yaml(Path(__file__).parent.parent / "pipelines" / f"{name}.yaml"), name)
+    if name in ("fast", "paper"):
+        assert not conf.fine.enabled
+    if name == "gnc_pose":
+        assert conf.fine.enabled and conf.refine.flips and conf.match.roi == "none"

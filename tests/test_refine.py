@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from batchpose.config import FeatureConfig, GncConfig, RefineConfig
 from batchpose.features import detect, to_gray
@@ -27,7 +28,8 @@ def test_guided_matches_respect_radius_and_mutual_check():
     assert len(r_idx) == 0  # 3 px shift is outside a 2 px radius
 
 
-def test_refine_recovers_perturbed_pose(cracker_model):
+@pytest.mark.parametrize("gnc", [True, False])
+def test_refine_recovers_perturbed_pose(cracker_model, gnc):
     rng = np.random.default_rng(11)
     renderer = get_renderer()
     T = random_pose(rng, cracker_model.center_m)
@@ -40,7 +42,8 @@ def test_refine_recovers_perturbed_pose(cracker_model):
     def render(Tx):
         return renderer.render(cracker_model.content_hash, cracker_model.mesh, Tx, K_SYN, 640, 480)
 
-    out = refine_pose(T0, xy_q, desc_q, K_SYN, np.zeros(0), render, RefineConfig(), FeatureConfig(), GncConfig())
+    conf = RefineConfig(gnc=gnc)
+    out = refine_pose(T0, xy_q, desc_q, K_SYN, np.zeros(0), render, conf, FeatureConfig(), GncConfig())
     assert out is not None and out.result.status == "ok"
     Te = out.result.cam_from_model
     rot = np.degrees(np.arccos(np.clip((np.trace(Te[:3, :3] @ T[:3, :3].T) - 1) / 2, -1, 1)))
