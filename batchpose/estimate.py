@@ -356,25 +356,28 @@ class PoseEstimator:
                 iterations=iterations,
             )
 
+        def finish(r):
+            """The remaining rounds after a first one; keeps the first when they do not score higher."""
+            if r is None or conf.refine.iterations <= 1:
+                return r
+            more = refine(r.result.cam_from_model, conf.refine.iterations - 1)
+            return more if more is not None and more.score >= r.score else r
+
         # One round per hypothesis to rank them, the remaining rounds for the best one only.
         best = None
         for T in starts:
             r = refine(T, 1)
             if r is not None and (best is None or r.score > best.score):
                 best = r
-        if best is not None and conf.refine.iterations > 1:
-            more = refine(best.result.cam_from_model, conf.refine.iterations - 1)
-            if more is not None and more.score >= best.score:
-                best = more
+        best = finish(best)
         if best is not None and conf.refine.flips:
             # A turned hypothesis starts up to ~20 degrees off, so one that finds a third of the best score in
             # its first round gets the remaining rounds before it is compared.
             base = best.result.cam_from_model
             for F in self._flips(name):
                 r = refine(base @ F, 1)
-                if r is not None and conf.refine.iterations > 1 and 3 * r.score >= best.score:
-                    more = refine(r.result.cam_from_model, conf.refine.iterations - 1)
-                    r = more if more is not None and more.score >= r.score else r
+                if r is not None and 3 * r.score >= best.score:
+                    r = finish(r)
                 if r is not None and r.score > best.score:
                     best = r
         if best is not None and ok and best.score < max(r.n_inliers for r in ok):

@@ -14,13 +14,14 @@ from batchpose.estimate import PoseEstimator, fine_keypoints
 from batchpose.features import detect, to_gray
 from batchpose.frames import Camera
 from batchpose.gnc_pnp import PnpResult
+from batchpose.metrics import rotation_error_deg
 from batchpose.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose, random_pose
 
 
 def rot_deg(A: np.ndarray, B: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(A[:3, :3] @ B[:3, :3].T) - 1) / 2, -1, 1))))
+    return rotation_error_deg(A[:3, :3], B[:3, :3])
 
 
 def test_flips_are_half_turns_about_the_box_axes(cracker_model):
