@@ -186,6 +186,41 @@ class FineConfig:
 
 
 @dataclass(frozen=True)
+class TrackConfig:
+    """Frame-to-frame tracking (batchpose's addition; see :mod:`batchpose.track`): a confident pose is
+    followed into the next frames with optical flow and PnP instead of being estimated afresh."""
+
+    enabled: bool = True
+    max_gap_s: float = 0.25
+    """Follow a pose only into a later frame of the same scene and camera at most this many seconds on."""
+    min_confidence: float = 0.5
+    """Start a track only from a full estimate at least this confident."""
+    redetect_every: int = 30
+    """Estimate afresh after this many tracked frames (0: only when the track is lost)."""
+    points: int = 200
+    """Corners seeded on the object at the keyframe."""
+    quality: float = 0.01
+    """Shi-Tomasi quality level of a seeded corner (fraction of the strongest corner's score)."""
+    min_distance_px: float = 5.0
+    """Seeded corners are at least this far apart."""
+    min_points: int = 12
+    """A track is lost with fewer surviving points than this ..."""
+    min_fraction: float = 0.5
+    """... or than this fraction of its seeded points."""
+    fb_max_px: float = 1.0
+    """A point survives a frame when optical flow back from its new position lands this close to the old."""
+    reproj_px: float = 3.0
+    """... and its reprojection error at the tracked pose is at most this."""
+    window_px: int = 15
+    """Lucas-Kanade window side."""
+    levels: int = 3
+    """Lucas-Kanade pyramid levels above the full image."""
+    chunk_frames: int = 32
+    """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on
+    ``--jobs``; each task starts with a full estimate."""
+
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     """Everything that decides a pose, one section per stage."""
 
@@ -204,6 +239,7 @@ class EstimatorConfig:
     gnc: GncConfig = field(default_factory=GncConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     fine: FineConfig = field(default_factory=FineConfig)
+    track: TrackConfig = field(default_factory=TrackConfig)
 
 
 _CHOICES = {
@@ -286,6 +322,19 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: weights.voxel_m must be positive, got {conf.weights.voxel_m}")
     if conf.fine.upsample < 1 or conf.fine.max_side_px < 32:
         raise ConfigError(f"{where}: fine.upsample must be >= 1 and fine.max_side_px >= 32")
+    tc = conf.track
+    for key, ok, need in (
+        ("max_gap_s", tc.max_gap_s > 0, "be positive"),
+        ("points", tc.points >= 1, "be >= 1"),
+        ("min_points", tc.min_points >= 6, "be >= 6 (PnP)"),
+        ("min_fraction", 0 <= tc.min_fraction <= 1, "be in [0, 1]"),
+        ("redetect_every", tc.redetect_every >= 0, "be >= 0"),
+        ("window_px", tc.window_px >= 5, "be >= 5"),
+        ("levels", tc.levels >= 0, "be >= 0"),
+        ("chunk_frames", tc.chunk_frames >= 1, "be >= 1"),
+    ):
+        if not ok:
+            raise ConfigError(f"{where}: track.{key} must {need}, got {getattr(tc, key)}")
     if not 0 < conf.gnc.gamma < 1:
         raise ConfigError(f"{where}: gnc.gamma must be in (0, 1), got {conf.gnc.gamma}")
     return conf

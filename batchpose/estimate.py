@@ -28,6 +28,7 @@ from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.templates import TemplateLibrary
+from batchpose.track import Track, follow, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
@@ -98,6 +99,8 @@ class PoseEstimator:
         self._lib_index: dict[str, object] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flip_cache: dict[str, list[np.ndarray]] = {}
+        self._tracks: dict[str, Track] = {}
+        self._prev: dict | None = None
 
     # -- per-object caches -------------------------------------------------------------------------
     def _library_index(self, name: str):
@@ -396,14 +399,122 @@ class PoseEstimator:
     def _weights(self, name: str, corr: Correspondences) -> np.ndarray:
         return self._weights_for(name, corr.X)
 
+    # -- tracking ----------------------------------------------------------------------------------
+    def reset_tracks(self) -> None:
+        """Forget every track: the next frame is estimated afresh (a worker does this at each task)."""
+        self._tracks = {}
+        self._prev = None
+
+    def tracking(self) -> bool:
+        """True when :meth:`estimate_frame` follows confident poses into the next frames (``track.*``)."""
+        c = self.conf
+        return c.track.enabled and c.method == "gnc_pose" and c.match.roi == "none" and self.renderer is not None
+
+    def _follows(self, frame: Frame) -> bool:
+        """True when ``frame`` is the next image (``im_id`` + 1) of the previous frame's scene and camera,
+        a short step later in time (folder data sets' stamps are synthetic, their ``im_id`` is not)."""
+        p, cam = self._prev, frame.camera
+        if p is None or p["scene_id"] != frame.scene_id or frame.im_id != p["im_id"] + 1:
+            return False
+        if p["gray"].shape != (cam.height, cam.width):
+            return False
+        gap_s = (frame.stamp_ns - p["stamp_ns"]) * 1e-9
+        same_camera = np.array_equal(p["K"], cam.K) and np.array_equal(p["dist"], cam.dist)
+        return same_camera and 0 < gap_s <= self.conf.track.max_gap_s
+
+    def _seed(self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera) -> Track | None:
+        """A new track from a confident full estimate (None when the object shows too few corners)."""
+        model = self.models.get(name)
+        if model is None:
+            return None
+        T = rec.cam_from_model
+        _, depth = self.renderer.render(
+            model.content_hash,
+            model.mesh,
+            T,
+            camera.K,
+            camera.width,
+            camera.height,
+            "flat",
+            self.conf.render.znear_m,
+            self.conf.render.zfar_m,
+        )
+        xy, X = seed(gray, T, depth, camera.K, camera.dist, self.conf.track)
+        if len(xy) < self.conf.track.min_points:
+            return None
+        return Track(xy, X, T, len(xy), rec.confidence)
+
+    def _estimate_tracked(self, rgb: np.ndarray, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
+        """:meth:`estimate_image` that follows live tracks instead (see :mod:`batchpose.track`)."""
+        camera, tc = frame.camera, self.conf.track
+        camera.validate(frame.frame_id)
+        check_image(rgb, frame.frame_id)
+        t0 = time.perf_counter()
+        gray = to_gray(rgb)
+        t_gray = time.perf_counter() - t0
+        prev = self._prev
+        tracks = self._tracks if self._follows(frame) else {}
+        self._tracks, self._prev = {}, None  # rebuilt below; stays empty if this frame fails
+        out: dict[str, PoseRecord] = {}
+        for name in obj_names:
+            tr = tracks.get(name)
+            if tr is None or (tc.redetect_every and tr.age >= tc.redetect_every):
+                continue
+            t0 = time.perf_counter()
+            res = follow(prev["gray"], gray, tr, camera.K, camera.dist, tc)
+            if res is None:
+                log.debug("%s: track of %s lost, estimating afresh", frame.frame_id, name)
+                continue
+            self._tracks[name] = moved = res.track
+            out[name] = PoseRecord(
+                frame.frame_id,
+                name,
+                "ok",
+                obj_id=self.obj_ids.get(name, 0),
+                cam_from_model=moved.cam_from_model,
+                confidence=min(tr.confidence, confidence(res.n_inliers, res.median_residual_px, self.conf)),
+                n_matches=len(tr.xy),
+                n_inliers=res.n_inliers,
+                median_residual_px=res.median_residual_px,
+                inliers_px=moved.xy,
+                timings={"track": t_gray + time.perf_counter() - t0},
+                tracked=True,
+            )
+        rest = [n for n in obj_names if n not in out]
+        for rec in self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id) if rest else []:
+            out[rec.obj_name] = rec
+            if rec.ok and rec.confidence >= tc.min_confidence:
+                t0 = time.perf_counter()
+                tr = self._seed(rec.obj_name, gray, rec, camera)
+                rec.timings["seed"] = time.perf_counter() - t0
+                if tr is not None:
+                    self._tracks[rec.obj_name] = tr
+        self._prev = {
+            "gray": gray,
+            "scene_id": frame.scene_id,
+            "im_id": frame.im_id,
+            "stamp_ns": frame.stamp_ns,
+            "K": camera.K,
+            "dist": camera.dist,
+        }
+        return [out[n] for n in obj_names]
+
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
-        """Estimate every object in a frame; never raises for bad input (failed records instead)."""
+        """Estimate every object in a frame; never raises for bad input (failed records instead).
+
+        With tracking on (``track.enabled`` and a renderer), a confident pose from the previous frame is
+        followed into this one instead of being estimated afresh; call :meth:`reset_tracks` between
+        unrelated sequences of frames.
+        """
         t0 = time.perf_counter()
         try:
             rgb = decode_image(frame)
             t_decode = time.perf_counter() - t0
-            records = self.estimate_image(rgb, frame.camera, obj_names, frame.gt, frame.frame_id)
+            if self.tracking():
+                records = self._estimate_tracked(rgb, frame, obj_names)
+            else:
+                records = self.estimate_image(rgb, frame.camera, obj_names, frame.gt, frame.frame_id)
         except BatchposeError as e:
             kind = type(e).__name__
             status = {"ImageError": "bad_image", "CameraError": "bad_camera"}.get(kind, "error")
@@ -413,6 +524,8 @@ class PoseEstimator:
             log.debug("frame %s failed", frame.frame_id, exc_info=True)
             records = [PoseRecord(frame.frame_id, n, "error", f"{type(e).__name__}: {e}") for n in obj_names]
             t_decode = time.perf_counter() - t0
+        if any(r.status in ("bad_image", "bad_camera", "error") for r in records):
+            self.reset_tracks()  # a frame that could not be read breaks every track
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

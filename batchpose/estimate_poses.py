@@ -39,7 +39,7 @@ def _estimator(
         conf = load_estimator_config(conf_dict)
         libs = {name: build_templates.load(Path(d)) for name, d in lib_dirs.items()}
         models, renderer = {}, None
-        if conf.refine.enabled:
+        if conf.refine.enabled or conf.track.enabled:
             from batchpose.render import get_renderer
 
             models = {name: load_mesh(Path(p), conf.mesh, name=name) for name, p in mesh_paths.items()}
@@ -73,6 +73,7 @@ def estimate_chunk(
     """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows."""
     _relax_loky_leak_check()
     est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
+    est.reset_tracks()  # a track never crosses tasks: results do not depend on how tasks meet workers
     rows = []
     for frame, names in zip(frames, targets, strict=False):
         rows.extend(r.to_row() for r in est.estimate_frame(frame, names))
@@ -155,6 +156,8 @@ def main(
     objects = list(lib_dirs)
     lib_strs = {k: str(v) for k, v in lib_dirs.items()}
     mesh_strs = {k: str(v) for k, v in mesh_paths.items()}
+    if conf.track.enabled:
+        chunk_size = max(chunk_size, conf.track.chunk_frames)
     n_shards = len(list(shard_dir.glob("shard-*.parquet")))
     total = source.count() if limit is None else min(source.count(), limit)
     t0 = time.perf_counter()

@@ -6,6 +6,7 @@ Table columns (one row per (frame, object)):
     R (list of 9 float, row-major, model->camera), t_m (list of 3 float, metres; NaN when failed),
     confidence (float in [0, 1]), n_matches (int), n_inliers (int), median_residual_px (float),
     templates (str, space-separated template view ids), inliers_px (list of float, x0 y0 x1 y1 ...),
+    tracked (bool: followed from the previous frame by :mod:`batchpose.track`, not estimated afresh),
     time_<stage>_s (float) for each stage in :data:`STAGES`, time_total_s (float).
 """
 
@@ -17,7 +18,7 @@ import numpy as np
 
 STATUSES = ("ok", "too_few_matches", "pnp_failed", "bad_image", "bad_camera", "error")
 #: Per-(frame, object) timing stages, in pipeline order.
-STAGES = ("decode", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine")
+STAGES = ("decode", "track", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "seed")
 
 
 @dataclass
@@ -40,6 +41,7 @@ class PoseRecord:
     templates: tuple[int, ...] = ()
     inliers_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     timings: dict[str, float] = field(default_factory=dict)
+    tracked: bool = False
 
     @property
     def ok(self) -> bool:
@@ -69,6 +71,7 @@ class PoseRecord:
             "median_residual_px": float(self.median_residual_px),
             "templates": " ".join(str(int(v)) for v in self.templates),
             "inliers_px": np.asarray(self.inliers_px, dtype=float).reshape(-1).tolist(),
+            "tracked": bool(self.tracked),
         }
         for stage in STAGES:
             row[f"time_{stage}_s"] = float(self.timings.get(stage, 0.0))

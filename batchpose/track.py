@@ -1,0 +1,135 @@
+"""Frame-to-frame tracking: follow a confident pose into the next frame without SIFT or matching.
+
+A recording's consecutive frames differ by a few pixels, so after a confident full estimate batchpose
+seeds corners on the object (Shi-Tomasi, inside the silhouette rendered at that pose, lifted to model-frame
+3D points through the rendered depth) and, in each following frame, moves them with pyramidal Lucas-Kanade
+optical flow (kept only when flowing back lands within ``fb_max_px`` of the start) and solves the pose by
+Levenberg-Marquardt from the previous pose, trimming points whose reprojection error exceeds
+``reproj_px``. The 3D points never change while a track lives, so the pose does not drift in the model;
+only the flow can drift, and a track ends (the next frame is estimated afresh) when fewer than
+``min_fraction`` of its seeded points survive, after ``redetect_every`` frames, at a scene change or a gap
+in time. Pure computation: the caller (:class:`batchpose.estimate.PoseEstimator`) keeps one
+:class:`Track` per object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from batchpose.config import TrackConfig
+from batchpose.templates import lift_keypoints
+
+
+@dataclass
+class Track:
+    """One object's live track.
+
+    Attributes:
+        xy: (N, 2) float32 positions of the surviving points in the last frame.
+        X: (N, 3) float64 their model-frame 3D points.
+        cam_from_model: (4, 4) pose in the last frame.
+        n_seeded: points at the keyframe (the survival fraction is measured against it).
+        confidence: the keyframe estimate's confidence (a tracked pose never claims more).
+        age: frames tracked since the keyframe.
+    """
+
+    xy: np.ndarray
+    X: np.ndarray
+    cam_from_model: np.ndarray
+    n_seeded: int
+    confidence: float
+    age: int = 0
+
+
+@dataclass
+class TrackResult:
+    """A tracked pose: the moved track plus the figures a pose record reports."""
+
+    track: Track
+    n_inliers: int
+    median_residual_px: float
+
+
+def seed(
+    gray: np.ndarray,
+    cam_from_model: np.ndarray,
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    dist: np.ndarray,
+    conf: TrackConfig,
+):
+    """Corners on the object at a known pose.
+
+    Args:
+        gray: (H, W) uint8 frame. depth_m: (H, W) z-depth rendered (pinhole, no distortion) at
+            ``cam_from_model``, 0 off the object. dist: the frame's distortion coefficients (may be empty).
+
+    Returns:
+        xy (N, 2) float32 and X (N, 3) float64 model-frame points; N may be 0.
+    """
+    mask = (depth_m > 0).astype(np.uint8)
+    # No corners whose flow window reaches over the silhouette: the background does not move with the object.
+    k = 2 * (conf.window_px // 2) + 1
+    mask = cv2.erode(mask, np.ones((k, k), np.uint8))
+    if not mask.any():
+        return np.zeros((0, 2), np.float32), np.zeros((0, 3))
+    corners = cv2.goodFeaturesToTrack(
+        gray, maxCorners=conf.points, qualityLevel=conf.quality, minDistance=conf.min_distance_px, mask=mask
+    )
+    if corners is None:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 3))
+    xy = corners.reshape(-1, 2).astype(np.float32)
+    at = xy
+    if dist is not None and np.any(dist):  # the rendered depth is where the undistorted ray lands
+        at = cv2.undistortPoints(xy.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+    keep, X = lift_keypoints(at, depth_m, K, np.linalg.inv(cam_from_model), radius=2)
+    return xy[keep], X.astype(np.float64)
+
+
+def _residuals(X, xy, rvec, tvec, K, dist) -> np.ndarray:
+    proj, _ = cv2.projectPoints(X, rvec, tvec, K, dist)
+    return np.linalg.norm(proj.reshape(-1, 2) - xy, axis=1)
+
+
+def follow(
+    prev_gray: np.ndarray, gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
+) -> TrackResult | None:
+    """Move ``track`` from ``prev_gray`` into ``gray``; None when the track is lost."""
+    if len(track.xy) < conf.min_points:
+        return None
+    lk = {
+        "winSize": (conf.window_px, conf.window_px),
+        "maxLevel": conf.levels,
+        "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+    }
+    p0 = track.xy.reshape(-1, 1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, None, **lk)
+    p0r, st0, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, p1, None, **lk)
+    fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
+    ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb <= conf.fb_max_px)
+    xy, X = p1.reshape(-1, 2)[ok].astype(np.float64), track.X[ok]
+    if len(xy) < max(conf.min_points, conf.min_fraction * track.n_seeded):
+        return None
+    rvec = cv2.Rodrigues(track.cam_from_model[:3, :3])[0]
+    tvec = track.cam_from_model[:3, 3].reshape(3, 1).copy()
+    # LM from the previous pose, twice trimming the points that do not fit (occluders, flow slips).
+    keep = np.ones(len(xy), bool)
+    for thresh in (None, conf.reproj_px):
+        rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
+        r = _residuals(X, xy, rvec, tvec, K, dist)
+        keep = r <= (max(conf.reproj_px, 3.0 * float(np.median(r[keep]))) if thresh is None else thresh)
+        if keep.sum() < max(conf.min_points, conf.min_fraction * track.n_seeded):
+            return None
+    rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
+    r = _residuals(X[keep], xy[keep], rvec, tvec, K, dist)
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    if T[2, 3] <= 0:
+        return None
+    snapped, _ = cv2.projectPoints(X[keep], rvec, tvec, K, dist)
+    moved = Track(snapped.reshape(-1, 2).astype(np.float32), X[keep], T, track.n_seeded, track.confidence, track.age + 1)
+    return TrackResult(moved, int(keep.sum()), float(np.median(r)))

@@ -1,0 +1,164 @@
+"""Frame-to-frame tracking (batchpose.track): a rendered clip of the bundled cracker box moving smoothly
+over a fixed background, run through PoseEstimator.estimate_frame as a batch worker would."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from batchpose.config import EstimatorConfig, TrackConfig, load_estimator_config
+from batchpose.errors import ConfigError
+from batchpose.estimate import PoseEstimator
+from batchpose.frames import Camera, Frame
+from batchpose.render import get_renderer
+from batchpose.views import look_at
+from tests.conftest import K_SYN
+from tests.test_estimate_synthetic import add_error, textured_background
+
+PERIOD_NS = 33_333_333
+
+
+def clip_pose(i: int, center: np.ndarray) -> np.ndarray:
+    """Frame i of a smooth path: 3 degrees of azimuth and 4 mm closer per frame, a slow roll."""
+    az = np.deg2rad(30.0 + 3.0 * i)
+    el = np.deg2rad(25.0)
+    dist = 0.75 - 0.004 * i
+    eye = center + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    T = look_at(eye, center, np.array([0.0, 0.0, 1.0]))
+    roll = np.deg2rad(1.0 * i)
+    Rz = np.array([[np.cos(roll), -np.sin(roll), 0], [np.sin(roll), np.cos(roll), 0], [0, 0, 1]])
+    T[:3, :3] = Rz @ T[:3, :3]
+    T[:3, 3] = Rz @ T[:3, 3]
+    T[0, 3] += 0.002 * i
+    return T
+
+
+def frame_of(rgb: np.ndarray, im_id: int, scene_id: int = 0, stamp_ns: int | None = None) -> Frame:
+    return Frame(
+        frame_id=f"clip/{im_id}",
+        scene_id=scene_id,
+        im_id=im_id,
+        stamp_ns=im_id * PERIOD_NS if stamp_ns is None else stamp_ns,
+        camera=Camera(K_SYN, 640, 480),
+        image_format="rgb8",
+        image_data=np.ascontiguousarray(rgb).tobytes(),
+    )
+
+
+@pytest.fixture(scope="module")
+def clip(cracker_model):
+    """12 frames (RGB, true pose) of the moving box over one background, with sensor noise."""
+    rng = np.random.default_rng(11)
+    bg = textured_background(rng)
+    out = []
+    for i in range(12):
+        T = clip_pose(i, cracker_model.center_m)
+        rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
+        img = bg.copy()
+        img[depth > 0] = rgb[depth > 0]
+        img = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        out.append((img, T))
+    return out
+
+
+def make_estimator(model, library, **track) -> PoseEstimator:
+    conf = dataclasses.replace(EstimatorConfig(), track=TrackConfig(**track))
+    return PoseEstimator(conf, {model.name: library}, models={model.name: model}, renderer=get_renderer())
+
+
+def run_clip(est: PoseEstimator, frames: list[Frame], name: str):
+    est.reset_tracks()
+    return [est.estimate_frame(f, [name])[0] for f in frames]
+
+
+def test_tracked_poses_follow_the_object(cracker_model, cracker_library, clip):
+    est = make_estimator(cracker_model, cracker_library)
+    recs = run_clip(est, [frame_of(img, i) for i, (img, _) in enumerate(clip)], cracker_model.name)
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    errors = [add_error(r.cam_from_model, T, pts) for r, (_, T) in zip(recs, clip, strict=True)]
+    print("ADD mm", np.round(np.array(errors) * 1000, 2), "tracked", [r.tracked for r in recs])
+    assert not recs[0].tracked and all(r.tracked for r in recs[1:])
+    assert all(r.ok for r in recs)
+    # Tracked frames skip SIFT and matching: no time is booked on those stages.
+    assert all("sift" not in r.timings and "match" not in r.timings and r.timings["track"] > 0 for r in recs[1:])
+    assert "seed" in recs[0].timings
+    # 11 frames of flow do not drift: every tracked pose within 1 % of the box's diameter (~3 mm).
+    assert max(errors[1:]) < 0.01 * cracker_model.diameter_m, errors
+    assert all(0 < r.confidence <= recs[0].confidence for r in recs[1:])
+
+
+@pytest.mark.parametrize(
+    ("change", "expect"),
+    [
+        ("im_id_gap", [False, True, True, False, True, True]),  # frame 3 is im_id 4: a skipped image
+        ("scene", [False, True, True, False, True, True]),  # frame 3 starts another scene
+        ("time_gap", [False, True, True, False, True, True]),  # frame 3 comes 1 s later
+        ("redetect_every_2", [False, True, True, False, True, True]),  # two tracked frames, then afresh
+        ("low_confidence", [False] * 6),  # no estimate is confident enough to start a track
+        ("disabled", [False] * 6),
+    ],
+)
+def test_when_a_track_starts_and_ends(cracker_model, cracker_library, clip, change, expect):
+    track = {"redetect_every": 2} if change == "redetect_every_2" else {}
+    if change == "low_confidence":
+        track["min_confidence"] = 1.01
+    if change == "disabled":
+        track["enabled"] = False
+    est = make_estimator(cracker_model, cracker_library, **track)
+    frames = []
+    for i, (img, _) in enumerate(clip[:6]):
+        im_id, scene, stamp = i, 0, None
+        if i >= 3 and change == "im_id_gap":
+            im_id = i + 1
+        if i >= 3 and change == "scene":
+            scene = 1
+        if i >= 3 and change == "time_gap":
+            stamp = i * PERIOD_NS + 1_000_000_000
+        frames.append(frame_of(img, im_id, scene, stamp))
+    recs = run_clip(est, frames, cracker_model.name)
+    assert [r.tracked for r in recs] == expect
+    assert all(r.ok for r in recs)
+
+
+def test_a_cut_is_not_tracked(cracker_model, cracker_library, clip):
+    """A cut to another view of the object (next im_id, as in a spliced log): the flow check loses the
+    track and the frame is estimated afresh, correctly."""
+    est = make_estimator(cracker_model, cracker_library)
+    order = [0, 1, 2, 9, 10]  # frames 9 and 10 show the box 21-24 degrees on, 3 cm closer
+    recs = run_clip(est, [frame_of(clip[j][0], i) for i, j in enumerate(order)], cracker_model.name)
+    assert [r.tracked for r in recs] == [False, True, True, False, True]
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    assert add_error(recs[3].cam_from_model, clip[9][1], pts) < 0.02 * cracker_model.diameter_m
+
+
+def test_unreadable_frame_breaks_the_track(cracker_model, cracker_library, clip):
+    est = make_estimator(cracker_model, cracker_library)
+    frames = [frame_of(img, i) for i, (img, _) in enumerate(clip[:4])]
+    frames[2] = dataclasses.replace(frames[2], image_data=b"")
+    recs = run_clip(est, frames, cracker_model.name)
+    assert [r.status for r in recs] == ["ok", "ok", "bad_image", "ok"]
+    assert [r.tracked for r in recs] == [False, True, False, False]
+
+
+def test_track_config_is_checked():
+    with pytest.raises(ConfigError, match="track.min_points must be >= 6"):
+        load_estimator_config({"track": {"min_points": 2}})
+    with pytest.raises(ConfigError, match="unknown key pointz"):
+        load_estimator_config({"track": {"pointz": 2}})
+
+
+def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
+    """Seeded corners' 3D points reproject onto the corners (the lift is exact at the true pose)."""
+    from batchpose.track import seed
+
+    img, T = clip[0]
+    _, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480)
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    xy, X = seed(gray, T, depth, K_SYN, np.zeros(0), TrackConfig())
+    assert 50 <= len(xy) <= TrackConfig().points
+    proj, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K_SYN, None)
+    assert np.median(np.linalg.norm(proj.reshape(-1, 2) - xy, axis=1)) < 0.6
+    assert np.all(depth[np.rint(xy[:, 1]).astype(int), np.rint(xy[:, 0]).astype(int)] > 0)
