@@ -203,10 +203,20 @@ class TrackConfig:
     """Shi-Tomasi quality level of a seeded corner (fraction of the strongest corner's score)."""
     min_distance_px: float = 5.0
     """Seeded corners are at least this far apart."""
+    min_ncc: float = 0.5
+    """A corner is seeded only where the frame correlates with the mesh rendered at the pose at least this
+    much (normalised cross-correlation of the patches): corners on an occluder are not the object."""
+    ncc_radius_px: int = 5
+    """Half-side of the patches compared for ``min_ncc``."""
     min_points: int = 12
     """A track is lost with fewer surviving points than this ..."""
     min_fraction: float = 0.5
     """... or than this fraction of its seeded points."""
+    anchor: bool = True
+    """Also flow each point straight from the keyframe (started where frame-to-frame flow ended), so that
+    flow errors do not add up over a track."""
+    anchor_px: float = 2.0
+    """Use the keyframe flow where it lands within this many pixels of the frame-to-frame flow."""
     fb_max_px: float = 1.0
     """A point survives a frame when optical flow back from its new position lands this close to the old."""
     reproj_px: float = 3.0
@@ -330,6 +340,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("min_fraction", 0 <= tc.min_fraction <= 1, "be in [0, 1]"),
         ("redetect_every", tc.redetect_every >= 0, "be >= 0"),
         ("window_px", tc.window_px >= 5, "be >= 5"),
+        ("min_ncc", -1 <= tc.min_ncc <= 1, "be in [-1, 1]"),
+        ("ncc_radius_px", tc.ncc_radius_px >= 1, "be >= 1"),
         ("levels", tc.levels >= 0, "be >= 0"),
         ("chunk_frames", tc.chunk_frames >= 1, "be >= 1"),
     ):

@@ -428,7 +428,7 @@ class PoseEstimator:
         if model is None:
             return None
         T = rec.cam_from_model
-        _, depth = self.renderer.render(
+        rgb, depth = self.renderer.render(
             model.content_hash,
             model.mesh,
             T,
@@ -439,10 +439,10 @@ class PoseEstimator:
             self.conf.render.znear_m,
             self.conf.render.zfar_m,
         )
-        xy, X = seed(gray, T, depth, camera.K, camera.dist, self.conf.track)
+        xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, self.conf.track)
         if len(xy) < self.conf.track.min_points:
             return None
-        return Track(xy, X, T, len(xy), rec.confidence)
+        return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy())
 
     def _estimate_tracked(self, rgb: np.ndarray, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
         """:meth:`estimate_image` that follows live tracks instead (see :mod:`batchpose.track`)."""

@@ -34,6 +34,7 @@ class Track:
         n_seeded: points at the keyframe (the survival fraction is measured against it).
         confidence: the keyframe estimate's confidence (a tracked pose never claims more).
         age: frames tracked since the keyframe.
+        key_gray: the keyframe image; key_xy: (N, 2) the surviving points' positions in it.
     """
 
     xy: np.ndarray
@@ -42,6 +43,8 @@ class Track:
     n_seeded: int
     confidence: float
     age: int = 0
+    key_gray: np.ndarray | None = None
+    key_xy: np.ndarray | None = None
 
 
 @dataclass
@@ -53,19 +56,49 @@ class TrackResult:
     median_residual_px: float
 
 
+def patch_ncc(a: np.ndarray, b: np.ndarray, xy: np.ndarray, radius: int) -> np.ndarray:
+    """Normalised cross-correlation of the (2r+1)^2 patches of images ``a`` and ``b`` around each point.
+
+    Points whose patch leaves the image get -1; a flat patch (no contrast) gets 0.
+    """
+    h, w = a.shape
+    u = np.rint(xy[:, 0]).astype(int)
+    v = np.rint(xy[:, 1]).astype(int)
+    inside = (u >= radius) & (v >= radius) & (u < w - radius) & (v < h - radius)
+    out = np.full(len(xy), -1.0)
+    if not inside.any():
+        return out
+    d = np.arange(-radius, radius + 1)
+    rows = v[inside, None, None] + d[None, :, None]
+    cols = u[inside, None, None] + d[None, None, :]
+    pa = a[rows, cols].reshape(inside.sum(), -1).astype(np.float64)
+    pb = b[rows, cols].reshape(inside.sum(), -1).astype(np.float64)
+    pa -= pa.mean(axis=1, keepdims=True)
+    pb -= pb.mean(axis=1, keepdims=True)
+    den = np.sqrt((pa**2).sum(axis=1) * (pb**2).sum(axis=1))
+    out[inside] = np.where(den > 1e-9, (pa * pb).sum(axis=1) / np.maximum(den, 1e-9), 0.0)
+    return out
+
+
 def seed(
     gray: np.ndarray,
     cam_from_model: np.ndarray,
+    render_gray: np.ndarray,
     depth_m: np.ndarray,
     K: np.ndarray,
     dist: np.ndarray,
     conf: TrackConfig,
 ):
-    """Corners on the object at a known pose.
+    """Corners on the object at a known pose, where the frame looks like the mesh rendered there.
+
+    A corner is kept only when the frame's patch around it correlates (NCC >= ``conf.min_ncc``) with the
+    rendered mesh's: a corner on something in front of the object (which the rendering does not know
+    about) would otherwise be tracked as the object and drag its pose along with the occluder.
 
     Args:
-        gray: (H, W) uint8 frame. depth_m: (H, W) z-depth rendered (pinhole, no distortion) at
-            ``cam_from_model``, 0 off the object. dist: the frame's distortion coefficients (may be empty).
+        gray: (H, W) uint8 frame. render_gray: (H, W) uint8 the mesh rendered at ``cam_from_model``;
+            depth_m: its z-depth (pinhole, no distortion), 0 off the object. dist: the frame's distortion
+            coefficients (may be empty).
 
     Returns:
         xy (N, 2) float32 and X (N, 3) float64 model-frame points; N may be 0.
@@ -85,6 +118,8 @@ def seed(
     at = xy
     if dist is not None and np.any(dist):  # the rendered depth is where the undistorted ray lands
         at = cv2.undistortPoints(xy.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
+    looks_alike = patch_ncc(gray, render_gray, at, conf.ncc_radius_px) >= conf.min_ncc
+    xy, at = xy[looks_alike], at[looks_alike]
     keep, X = lift_keypoints(at, depth_m, K, np.linalg.inv(cam_from_model), radius=2)
     return xy[keep], X.astype(np.float64)
 
@@ -111,8 +146,23 @@ def follow(
     fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
     ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb <= conf.fb_max_px)
     xy, X = p1.reshape(-1, 2)[ok].astype(np.float64), track.X[ok]
+    key_xy = track.key_xy[ok] if track.key_xy is not None else None
     if len(xy) < max(conf.min_points, conf.min_fraction * track.n_seeded):
         return None
+    if conf.anchor and track.key_gray is not None:
+        # Flow straight from the keyframe, started where frame-to-frame flow ended: frame-to-frame errors
+        # add up over a track, errors against the keyframe do not.
+        pk, stk, _ = cv2.calcOpticalFlowPyrLK(
+            track.key_gray,
+            gray,
+            key_xy.reshape(-1, 1, 2).astype(np.float32),
+            xy.reshape(-1, 1, 2).astype(np.float32),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            **{**lk, "maxLevel": 1},
+        )
+        pk = pk.reshape(-1, 2)
+        agree = (stk.ravel() == 1) & (np.linalg.norm(pk - xy, axis=1) <= conf.anchor_px)
+        xy[agree] = pk[agree]
     rvec = cv2.Rodrigues(track.cam_from_model[:3, :3])[0]
     tvec = track.cam_from_model[:3, 3].reshape(3, 1).copy()
     # LM from the previous pose, twice trimming the points that do not fit (occluders, flow slips).
@@ -130,6 +180,16 @@ def follow(
     T[:3, 3] = tvec.ravel()
     if T[2, 3] <= 0:
         return None
+    # The points move on to where the pose puts them: single points cannot wander off the rigid object.
     snapped, _ = cv2.projectPoints(X[keep], rvec, tvec, K, dist)
-    moved = Track(snapped.reshape(-1, 2).astype(np.float32), X[keep], T, track.n_seeded, track.confidence, track.age + 1)
+    moved = Track(
+        snapped.reshape(-1, 2).astype(np.float32),
+        X[keep],
+        T,
+        track.n_seeded,
+        track.confidence,
+        track.age + 1,
+        track.key_gray,
+        key_xy[keep] if key_xy is not None else None,
+    )
     return TrackResult(moved, int(keep.sum()), float(np.median(r)))

@@ -38,6 +38,8 @@ from batchpose import run as run_mod  # noqa: E402
 W, H = 640, 480
 K = np.array([[620.0, 0.0, 319.5], [0.0, 620.0, 239.5], [0.0, 0.0, 1.0]])
 OBJECT = "003_cracker_box"
+SECOND = "009_gelatin_box"  # --two-objects: in view for 100 frames, out for the next 100, and so on
+SECOND_ON_OFF = 100
 MODELS = REPO / "demo_data" / "models"
 FRAME_PERIOD_NS = 33_333_333
 RSS_LIMIT = 1.5 * 1024**3
@@ -97,7 +99,14 @@ def trajectory(i: int, period: int, center_m: np.ndarray, diameter_m: float) -> 
     return out
 
 
-def generate(path: str, n: int, quality: int = 90) -> dict:
+def second_pose(i: int, period: int, center_m: np.ndarray, diameter_m: float) -> np.ndarray:
+    """The second object's pose: its own phase of the trajectory, shifted 190 px to the left."""
+    T = trajectory(i + period // 3, period, center_m, diameter_m)
+    T[0, 3] -= T[2, 3] * 190 / K[0, 0]
+    return T
+
+
+def generate(path: str, n: int, quality: int = 90, two_objects: bool = False) -> dict:
     """Write the log (run in a child process: the renderer's memory stays out of the measured processes)."""
     from batchpose.frames import Camera, Frame, ObjectPose  # noqa: PLC0415
     from batchpose.mcap_io import write_frames_mcap  # noqa: PLC0415
@@ -105,6 +114,7 @@ def generate(path: str, n: int, quality: int = 90) -> dict:
     from batchpose.render import get_renderer  # noqa: PLC0415
 
     model = load_mesh(MODELS / OBJECT / "textured.obj", name=OBJECT)
+    second = load_mesh(MODELS / SECOND / "textured.obj", name=SECOND) if two_objects else None
     renderer = get_renderer()
     bgs = backgrounds(5)
     cam = Camera(K=K, width=W, height=H)
@@ -119,6 +129,13 @@ def generate(path: str, n: int, quality: int = 90) -> dict:
             T = trajectory(i, period, model.center_m, model.diameter_m)
             t0 = time.perf_counter()
             rgb, depth = renderer.render(model.content_hash, model.mesh, T, K, W, H, "flat")
+            gt = [ObjectPose(OBJECT, T)]
+            if second is not None and (i // SECOND_ON_OFF) % 2 == 0:
+                T2 = second_pose(i, period, second.center_m, second.diameter_m)
+                rgb2, depth2 = renderer.render(second.content_hash, second.mesh, T2, K, W, H, "flat")
+                front = (depth2 > 0) & ((depth == 0) | (depth2 < depth))
+                rgb[front], depth[front] = rgb2[front], depth2[front]
+                gt.append(ObjectPose(SECOND, T2))
             t1 = time.perf_counter()
             ph = 2 * np.pi * (i % period) / period
             bg = bgs[(i % period) * len(bgs) // period]
@@ -137,10 +154,10 @@ def generate(path: str, n: int, quality: int = 90) -> dict:
             times["compose"] += t2 - t1
             times["jpeg"] += t3 - t2
             n_bytes += len(data)
-            yield Frame(f"{i:06d}", 0, i, i * FRAME_PERIOD_NS, cam, "jpeg", data, gt=(ObjectPose(OBJECT, T),))
+            yield Frame(f"{i:06d}", 0, i, i * FRAME_PERIOD_NS, cam, "jpeg", data, gt=tuple(gt))
 
     t0 = time.perf_counter()
-    write_frames_mcap(frames(), Path(path), obj_ids={OBJECT: 2})
+    write_frames_mcap(frames(), Path(path), obj_ids={OBJECT: 2, SECOND: 8})
     times["total"] = time.perf_counter() - t0
     times["mb"] = n_bytes / 1e6
     return times
@@ -193,6 +210,12 @@ def main() -> int:
         help="template cache, warmed before timing (default: $BATCHPOSE_CACHE or ~/.cache/batchpose)",
     )
     ap.add_argument("--keep", help="write the log and the run here instead of a temporary folder")
+    ap.add_argument(
+        "--two-objects",
+        action="store_true",
+        help=f"also render {SECOND}, in view in alternate blocks of {SECOND_ON_OFF} frames; each frame's "
+        "ground truth lists the objects in view and the run estimates those (targets: annotations)",
+    )
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(message)s")
     if args.frames < 8:
@@ -210,10 +233,10 @@ def main() -> int:
             "name: scale\n"
             f"frames: {{format: mcap, path: {log_path.name}}}\n"
             f'models: {{root: {MODELS}, mesh: "{{name}}/textured.obj", points: "{{name}}/points.xyz"}}\n'
-            f"objects: [{OBJECT}]\n"
-            "targets: all\n"
+            f"objects: [{OBJECT}{', ' + SECOND if args.two_objects else ''}]\n"
+            f"targets: {'annotations' if args.two_objects else 'all'}\n"
         )
-        gen = run_in_child(generate, str(log_path), args.frames)
+        gen = run_in_child(generate, str(log_path), args.frames, 90, args.two_objects)
         t_cache = run_in_child(warm_cache, str(manifest), args.pipeline, args.cache)
         print(
             f"generated {args.frames} frames {W}x{H} in {gen['total']:.1f} s ({args.frames / gen['total']:.0f} "
@@ -287,6 +310,7 @@ def main() -> int:
                 f"{1e3 * sel['time_total_s'].mean():.0f}",
                 f"{1e3 * sel['time_match_s'].mean():.0f}",
                 f"{100 * ok.mean():.0f}",
+                f"{100 * sel['tracked'].mean():.0f}" if "tracked" in sel else "-",
                 f"{rss_q[-1][0] / MB:.0f}",
                 f"{rss_q[-1][1] / MB:.0f}",
             ]
@@ -304,6 +328,7 @@ def main() -> int:
                 "compute ms / pair",
                 "of which matching ms",
                 "ok %",
+                "tracked %",
                 "peak worker RSS MB",
                 "main RSS MB",
             ],

@@ -85,8 +85,9 @@ def test_tracked_poses_follow_the_object(cracker_model, cracker_library, clip):
     # Tracked frames skip SIFT and matching: no time is booked on those stages.
     assert all("sift" not in r.timings and "match" not in r.timings and r.timings["track"] > 0 for r in recs[1:])
     assert "seed" in recs[0].timings
-    # 11 frames of flow do not drift: every tracked pose within 1 % of the box's diameter (~3 mm).
-    assert max(errors[1:]) < 0.01 * cracker_model.diameter_m, errors
+    # 11 frames of flow (3 degrees and 4 mm closer a frame) do not drift: every tracked pose within 2 % of
+    # the box's diameter (5 mm; a full estimate is within ~1 mm here, ADD's threshold is 27 mm).
+    assert max(errors[1:]) < 0.02 * cracker_model.diameter_m, errors
     assert all(0 < r.confidence <= recs[0].confidence for r in recs[1:])
 
 
@@ -134,6 +135,36 @@ def test_a_cut_is_not_tracked(cracker_model, cracker_library, clip):
     assert add_error(recs[3].cam_from_model, clip[9][1], pts) < 0.02 * cracker_model.diameter_m
 
 
+@pytest.mark.parametrize("min_ncc", [0.5, -1.0])
+def test_corners_on_an_occluder_are_not_seeded(cracker_model, cracker_library, clip, min_ncc):
+    """A textured card held still in front of the moving box: (almost) no corner is seeded on it (with the
+    check turned off, min_ncc = -1, many are), and the tracked poses follow the box, not the card."""
+    rng = np.random.default_rng(3)
+    card = textured_background(rng, 70, 90)
+    x0, y0 = 300, 200  # over the middle of the box in every frame
+    frames = []
+    for i, (img, _) in enumerate(clip[:6]):
+        img = img.copy()
+        img[y0 : y0 + 90, x0 : x0 + 70] = card
+        frames.append(frame_of(img, i))
+    est = make_estimator(cracker_model, cracker_library, min_ncc=min_ncc)
+    est.reset_tracks()
+    first = est.estimate_frame(frames[0], [cracker_model.name])[0]
+    assert first.ok and not first.tracked
+    key = est._tracks[cracker_model.name].key_xy
+    inside = (key[:, 0] >= x0 + 4) & (key[:, 0] < x0 + 66) & (key[:, 1] >= y0 + 4) & (key[:, 1] < y0 + 86)
+    print(f"min_ncc {min_ncc}: {inside.sum()} of {len(key)} seeded corners inside the card")
+    if min_ncc < 0:
+        assert inside.sum() >= 5  # the card is textured: without the check its corners are seeded
+        return
+    assert len(key) >= 30 and inside.sum() <= 2
+    recs = [est.estimate_frame(f, [cracker_model.name])[0] for f in frames[1:]]
+    assert all(r.tracked for r in recs)
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    errors = [add_error(r.cam_from_model, T, pts) for r, (_, T) in zip(recs, clip[1:6], strict=False)]
+    assert max(errors) < 0.02 * cracker_model.diameter_m, errors
+
+
 def test_unreadable_frame_breaks_the_track(cracker_model, cracker_library, clip):
     est = make_estimator(cracker_model, cracker_library)
     frames = [frame_of(img, i) for i, (img, _) in enumerate(clip[:4])]
@@ -155,9 +186,9 @@ def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
     from batchpose.track import seed
 
     img, T = clip[0]
-    _, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480)
+    rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480)
     gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-    xy, X = seed(gray, T, depth, K_SYN, np.zeros(0), TrackConfig())
+    xy, X = seed(gray, T, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), depth, K_SYN, np.zeros(0), TrackConfig())
     assert 50 <= len(xy) <= TrackConfig().points
     proj, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K_SYN, None)
     assert np.median(np.linalg.norm(proj.reshape(-1, 2) - xy, axis=1)) < 0.6
