@@ -195,8 +195,9 @@ class TrackConfig:
     """Follow a pose only into a later frame of the same scene and camera at most this many seconds on."""
     min_confidence: float = 0.5
     """Start a track only from a full estimate at least this confident."""
-    redetect_every: int = 30
-    """Estimate afresh after this many tracked frames (0: only when the track is lost)."""
+    redetect_every: int = 0
+    """Estimate afresh after this many tracked frames (0: only when the track is lost or the worker task
+    ends, i.e. at least every ``chunk_frames`` frames)."""
     points: int = 200
     """Corners seeded on the object at the keyframe."""
     quality: float = 0.01
@@ -227,7 +228,7 @@ class TrackConfig:
     """Lucas-Kanade pyramid levels above the full image."""
     chunk_frames: int = 32
     """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on
-    ``--jobs``; each task starts with a full estimate."""
+    ``--jobs``; each task starts with a full estimate (which also bounds how long a track can drift)."""
 
 
 @dataclass(frozen=True)

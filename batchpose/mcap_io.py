@@ -163,6 +163,7 @@ STATUS_JSON_SCHEMA = {
                     "reason": {"type": "string"},
                     "confidence": {"type": "number"},
                     "n_inliers": {"type": "integer"},
+                    "tracked": {"type": "boolean", "description": "followed from the previous frame"},
                 },
             },
         },
@@ -1037,6 +1038,7 @@ class _PoseWriter:
                     "reason": str(r.get("reason", "") or ""),
                     "confidence": conf,
                     "n_inliers": int(r.get("n_inliers", 0) or 0),
+                    "tracked": bool(r.get("tracked", False)),
                 }
             )
             if not ok:
