@@ -189,12 +189,15 @@ def warm_cache(manifest: str, pipeline: str, overrides: list[str], cache: str) -
     return time.perf_counter() - t0
 
 
-def run_pipeline(args, run_dir: Path, jobs: int) -> dict:
+def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict:
     """One ``run.main`` with stage timers and an RSS sampler; returns what was measured.
 
     Run it in a child process: with ``jobs=1`` estimation happens in that process (so ``estimate_frame``
-    calls are timed there), and its peak RSS is then the single worker's.
+    calls are timed there), and its peak RSS is then the single worker's. ``one_core`` pins the process to
+    one CPU first (how a worker fares when every core has its own worker).
     """
+    if one_core:
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     timer = StageTimer()
     timer.wrap(ingest_frames, "main", "ingest")
     timer.wrap(build_templates, "main", "templates")
@@ -304,6 +307,7 @@ def main() -> int:
                 shutil.rmtree(run_dir)
             runs[jobs] = run_in_child(run_pipeline, args, run_dir, jobs)  # a fresh process per run
         acc = accuracy(runs[1]["run_dir"], base / "compare")
+        pinned = run_in_child(run_pipeline, args, base / "jobs1_one_core", 1, True)
 
     # the floor again: per frame, the faster of the two passes (the host's speed drifts; a low floor is strict)
     floor_after, cores_after, other_after = floor_pass(args, set(n_targets))
@@ -435,6 +439,12 @@ def main() -> int:
                 "CPU cores busy (CPU s / wall s)",
             ],
         )
+    )
+    s1c = pinned["steady_fps"]
+    print(
+        f"--jobs 1 pinned to one core: {pinned['steady_fps']:.2f} frames/s steady -> --jobs 2 on two cores is "
+        f"{s2 / s1c:.2f}x that (how the job pipeline itself scales; unpinned --jobs 1 already keeps "
+        f"{cores1:.2f} cores busy with OpenCV's and the software renderer's own threads)"
     )
     print(
         f"other processes kept {r1['rss'].other_load():.2f} / {r2['rss'].other_load():.2f} cores busy during the "
