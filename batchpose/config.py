@@ -180,6 +180,8 @@ class FineConfig:
     prefilter_views: int = 32
     """Views tested inside the box, chosen by the crop's keypoints' votes as in ``match.prefilter_views``
     (0: every view, which costs about twice the time for no measured gain on ycbv_dev)."""
+    skip_inliers: int = 0
+    """Skip the fine pass when the whole-frame pass already has at least this many inliers (0: never)."""
     cluster_radius_px: float = 48.0
     """Without a coarse pose: the box is that of the matched keypoints near the densest of them, within
     twice this radius."""

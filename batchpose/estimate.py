@@ -201,7 +201,8 @@ class PoseEstimator:
         timings["match"] = time.perf_counter() - t0
         res = self._solve(name, corr, camera, timings)
         passes = [(res, corr, xy_q, desc_q)]
-        if conf.fine.enabled:
+        strong = res is not None and res.status == "ok" and 0 < conf.fine.skip_inliers <= res.n_inliers
+        if conf.fine.enabled and not strong:
             t0 = time.perf_counter()
             fine = self._fine_pass(name, gray, res, corr, camera, gt_pose)
             timings["fine"] = time.perf_counter() - t0
