@@ -534,6 +534,7 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
         "reason": "3 matches",
         "confidence": 0.0,
         "n_inliers": 0,
+        "tracked": False,
     }
 
 
