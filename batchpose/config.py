@@ -220,6 +220,12 @@ class TrackConfig:
     flow errors do not add up over a track."""
     anchor_px: float = 2.0
     """Use the keyframe flow where it lands within this many pixels of the frame-to-frame flow."""
+    render_every: int = 0
+    """Every this many tracked frames, pull the points back onto the mesh: find each point's patch of the
+    mesh rendered at the tracked pose in the frame (NCC within ``render_search_px``) and solve again
+    (0: never)."""
+    render_search_px: int = 3
+    """How far from its tracked position a point's rendered patch is looked for."""
     fb_max_px: float = 1.0
     """A point survives a frame when optical flow back from its new position lands this close to the old."""
     reproj_px: float = 3.0
@@ -345,6 +351,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("window_px", tc.window_px >= 5, "be >= 5"),
         ("min_ncc", -1 <= tc.min_ncc <= 1, "be in [-1, 1]"),
         ("ncc_radius_px", tc.ncc_radius_px >= 1, "be >= 1"),
+        ("render_every", tc.render_every >= 0, "be >= 0"),
+        ("render_search_px", tc.render_search_px >= 1, "be >= 1"),
         ("levels", tc.levels >= 0, "be >= 0"),
         ("chunk_frames", tc.chunk_frames >= 1, "be >= 1"),
     ):

@@ -28,7 +28,7 @@ from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.templates import TemplateLibrary
-from batchpose.track import Track, follow, seed
+from batchpose.track import Track, anchor_to_render, follow, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
@@ -423,13 +423,9 @@ class PoseEstimator:
         same_camera = np.array_equal(p["K"], cam.K) and np.array_equal(p["dist"], cam.dist)
         return same_camera and 0 < gap_s <= self.conf.track.max_gap_s
 
-    def _seed(self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera) -> Track | None:
-        """A new track from a confident full estimate (None when the object shows too few corners)."""
-        model = self.models.get(name)
-        if model is None:
-            return None
-        T = rec.cam_from_model
-        rgb, depth = self.renderer.render(
+    def _render(self, name: str, T: np.ndarray, camera: Camera):
+        model = self.models[name]
+        return self.renderer.render(
             model.content_hash,
             model.mesh,
             T,
@@ -440,6 +436,17 @@ class PoseEstimator:
             self.conf.render.znear_m,
             self.conf.render.zfar_m,
         )
+
+    def _render_gray(self, name: str, T: np.ndarray, camera: Camera) -> np.ndarray:
+        return to_gray(self._render(name, T, camera)[0])
+
+    def _seed(self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera) -> Track | None:
+        """A new track from a confident full estimate (None when the object shows too few corners)."""
+        model = self.models.get(name)
+        if model is None:
+            return None
+        T = rec.cam_from_model
+        rgb, depth = self._render(name, T, camera)
         xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, self.conf.track)
         if len(xy) < self.conf.track.min_points:
             return None
@@ -466,6 +473,10 @@ class PoseEstimator:
             if res is None:
                 log.debug("%s: track of %s lost, estimating afresh", frame.frame_id, name)
                 continue
+            if tc.render_every and res.track.age % tc.render_every == 0:
+                rendered = self._render_gray(name, res.track.cam_from_model, camera)
+                anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc)
+                res = anchored if anchored is not None else res
             self._tracks[name] = moved = res.track
             out[name] = PoseRecord(
                 frame.frame_id,

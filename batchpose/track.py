@@ -193,3 +193,77 @@ def follow(
         key_xy[keep] if key_xy is not None else None,
     )
     return TrackResult(moved, int(keep.sum()), float(np.median(r)))
+
+
+def _solve_lm(X, xy, T, K, dist, conf: TrackConfig, n_needed: float):
+    """LM from pose ``T``, trimming twice; (pose, kept mask, median residual) or None."""
+    rvec = cv2.Rodrigues(T[:3, :3])[0]
+    tvec = T[:3, 3].reshape(3, 1).copy()
+    keep = np.ones(len(xy), bool)
+    for thresh in (None, conf.reproj_px):
+        rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
+        r = _residuals(X, xy, rvec, tvec, K, dist)
+        keep = r <= (max(conf.reproj_px, 3.0 * float(np.median(r[keep]))) if thresh is None else thresh)
+        if keep.sum() < n_needed:
+            return None
+    rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(rvec)[0]
+    out[:3, 3] = tvec.ravel()
+    if out[2, 3] <= 0:
+        return None
+    return out, keep, float(np.median(_residuals(X[keep], xy[keep], rvec, tvec, K, dist)))
+
+
+def anchor_to_render(
+    gray: np.ndarray, render_gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
+) -> TrackResult | None:
+    """Re-place the track's points on the mesh itself and solve again: each point's patch in the mesh
+    rendered at the tracked pose is found in the frame by normalised cross-correlation within
+    ``render_search_px``, so the pose is pulled back onto the model however far the flow has drifted
+    (within the search radius). None when too few points are found."""
+    h, r = conf.ncc_radius_px, conf.render_search_px
+    H, W = gray.shape
+    rvec = cv2.Rodrigues(track.cam_from_model[:3, :3])[0]
+    tvec = track.cam_from_model[:3, 3]
+    p_render = cv2.projectPoints(track.X, rvec, tvec, K, None)[0].reshape(-1, 2)  # the render is pinhole
+    p_frame = cv2.projectPoints(track.X, rvec, tvec, K, dist)[0].reshape(-1, 2)
+    found = np.full((len(p_frame), 2), np.nan)
+    for i, (pr, pf) in enumerate(zip(p_render, p_frame, strict=True)):
+        cr, cf = np.rint(pr).astype(int), np.rint(pf).astype(int)
+        if not (h <= cr[0] < W - h and h <= cr[1] < H - h and h + r <= cf[0] < W - h - r and h + r <= cf[1] < H - h - r):
+            continue
+        tmpl = render_gray[cr[1] - h : cr[1] + h + 1, cr[0] - h : cr[0] + h + 1]
+        if float(tmpl.std()) < 2.0:
+            continue
+        win = gray[cf[1] - h - r : cf[1] + h + r + 1, cf[0] - h - r : cf[0] + h + r + 1]
+        score = cv2.matchTemplate(win, tmpl, cv2.TM_CCOEFF_NORMED)
+        dy, dx = np.unravel_index(int(np.argmax(score)), score.shape)
+        if score[dy, dx] < conf.min_ncc or dy in (0, 2 * r) or dx in (0, 2 * r):
+            continue  # a weak peak, or the best place is at the edge of the search (farther than r)
+
+        def vertex(a, b, c):  # sub-pixel peak of a parabola through three samples
+            den = a - 2 * b + c
+            return 0.0 if abs(den) < 1e-9 else 0.5 * (a - c) / den
+
+        sx = vertex(score[dy, dx - 1], score[dy, dx], score[dy, dx + 1])
+        sy = vertex(score[dy - 1, dx], score[dy, dx], score[dy + 1, dx])
+        found[i] = cf + np.array([dx - r + sx, dy - r + sy]) + (pr - cr)
+    ok = np.isfinite(found[:, 0])
+    if ok.sum() < max(conf.min_points, conf.min_fraction * len(track.X)):
+        return None
+    solved = _solve_lm(track.X[ok], found[ok], track.cam_from_model, K, dist, conf, conf.min_points)
+    if solved is None:
+        return None
+    T, keep, med = solved
+    moved = Track(
+        cv2.projectPoints(track.X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2).astype(np.float32),
+        track.X,
+        T,
+        track.n_seeded,
+        track.confidence,
+        track.age,
+        track.key_gray,
+        track.key_xy,
+    )
+    return TrackResult(moved, int(keep.sum()), med)
