@@ -1116,7 +1116,8 @@ class _PoseWriter:
         ta = ann.texts.add()
         _timestamp(ta.timestamp, stamp_ns)
         ta.position.CopyFrom(Point2(x=float(uv[:, 0].min()), y=float(max(uv[:, 1].min() - 4.0, 12.0))))
-        ta.text, ta.font_size = f"{name} {conf:.2f}", 14.0
+        tracked = " (tracked)" if bool(r.get("tracked", False)) else ""
+        ta.text, ta.font_size = f"{name} {conf:.2f}{tracked}", 14.0
         ta.text_color.CopyFrom(_color(i))
         ta.background_color.CopyFrom(Color(r=0, g=0, b=0, a=0.6))
 

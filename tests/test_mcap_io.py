@@ -426,6 +426,7 @@ def _rows(stamps: list[int], rng: np.random.Generator, fail: set[int]) -> list[d
                 "confidence": 0.8 if ok else 0.0,
                 "n_inliers": 12 if ok else 0,
                 "inliers_px": [10.0, 12.0, 20.5, 30.0] if ok else [],
+                "tracked": i == 1,
             }
         )
     return rows
@@ -527,6 +528,8 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
         d = np.linalg.norm(got[:, None] - uv.reshape(1, -1, 2), axis=2).min(axis=1)
         assert d.max() < 1e-6
         assert ann.texts[0].timestamp.ToNanoseconds() == m.log_time - 5_000_000
+        assert ann.texts[0].text == "box 0.80" + (" (tracked)" if row["tracked"] else "")
+    assert [o["tracked"] for st in status for o in st["objects"]] == [False, True, False, False, False]
     assert [s["n_ok"] for s in status] == [1, 1, 0, 1, 1]
     assert status[2]["objects"][0] == {
         "obj_name": "box",
