@@ -231,7 +231,9 @@ def anchor_to_render(
     found = np.full((len(p_frame), 2), np.nan)
     for i, (pr, pf) in enumerate(zip(p_render, p_frame, strict=True)):
         cr, cf = np.rint(pr).astype(int), np.rint(pf).astype(int)
-        if not (h <= cr[0] < W - h and h <= cr[1] < H - h and h + r <= cf[0] < W - h - r and h + r <= cf[1] < H - h - r):
+        if not (
+            h <= cr[0] < W - h and h <= cr[1] < H - h and h + r <= cf[0] < W - h - r and h + r <= cf[1] < H - h - r
+        ):
             continue
         tmpl = render_gray[cr[1] - h : cr[1] + h + 1, cr[0] - h : cr[0] + h + 1]
         if float(tmpl.std()) < 2.0:

@@ -385,10 +385,12 @@ def main() -> int:
         )
 
     if "tracked" in poses:
+        tracked = poses["tracked"]
+        t_tracked, t_fresh = (poses.loc[sel, "time_total_s"].mean() for sel in (tracked, ~tracked))
         print(
-            f"\ntracked (followed from the previous frame, no SIFT or matching): {int(poses['tracked'].sum())} of "
-            f"{n_pairs} (frame, object) pairs; tracked pair {ms(poses.loc[poses['tracked'], 'time_total_s'].mean())} ms, "
-            f"estimated afresh {ms(poses.loc[~poses['tracked'], 'time_total_s'].mean())} ms (decode included)"
+            f"\ntracked (followed from the previous frame, no SIFT or matching): {int(tracked.sum())} of "
+            f"{n_pairs} (frame, object) pairs; tracked pair {ms(t_tracked)} ms, "
+            f"estimated afresh {ms(t_fresh)} ms (decode included)"
         )
     add("decode", frames["decode_frame"].sum(), "per frame")
     add("SIFT", frames["sift_frame"].sum(), "per frame")

@@ -204,3 +204,53 @@ def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
     proj, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K_SYN, None)
     assert np.median(np.linalg.norm(proj.reshape(-1, 2) - xy, axis=1)) < 0.6
     assert np.all(depth[np.rint(xy[:, 1]).astype(int), np.rint(xy[:, 0]).astype(int)] > 0)
+
+
+@pytest.mark.slow
+def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, clip, tmp_path, cache_dir):
+    """The whole job on a 10-frame MCAP of the clip, in tasks of 4 frames: --jobs 1, --jobs 2 and a run
+    stopped after its first task and resumed give the same poses and the same tracked flags."""
+    import pandas as pd
+
+    from batchpose import run
+    from batchpose.frames import ObjectPose
+    from batchpose.mcap_io import write_frames_mcap
+    from tests.conftest import ROOT
+
+    frames = [
+        dataclasses.replace(frame_of(img, i), gt=(ObjectPose(cracker_model.name, T),))
+        for i, (img, T) in enumerate(clip[:10])
+    ]
+    log = tmp_path / "clip.mcap"
+    write_frames_mcap(frames, log, obj_ids={cracker_model.name: 2})
+    manifest = tmp_path / "clip.yaml"
+    manifest.write_text(
+        f"name: clip\nframes: {{format: mcap, path: {log}}}\n"
+        f"models: {{root: {ROOT / 'demo_data' / 'models'}, mesh: '{{name}}/textured.obj'}}\n"
+        f"objects: [{cracker_model.name}]\ntargets: all\n"
+    )
+    pipeline, small = ROOT / "pipelines" / "gnc_pose.yaml", ["track.chunk_frames=4"]
+
+    def poses(out):
+        df = pd.read_parquet(out / "poses.parquet").sort_values("im_id").reset_index(drop=True)
+        return df[["im_id", "status", "tracked"]], np.stack(df["R"]), np.stack(df["t_m"])
+
+    runs = {}
+    for jobs in (1, 2):
+        out = run.main(
+            pipeline, manifest, tmp_path / f"j{jobs}", cache_dir=cache_dir, overrides=small, jobs=jobs, report=False
+        )
+        runs[jobs] = poses(out)
+    resumed = tmp_path / "resumed"
+    run.main(pipeline, manifest, resumed, cache_dir=cache_dir, overrides=small, jobs=1, max_pairs=4, report=False)
+    assert len(list((resumed / "shards").glob("shard-*.parquet"))) == 1
+    run.main(pipeline, manifest, resumed, cache_dir=cache_dir, overrides=small, jobs=1, report=False)
+    runs["resumed"] = poses(resumed)
+    flags, R, t = runs[1]
+    # Each task of 4 frames starts with a full estimate and tracks the rest.
+    assert flags["tracked"].tolist() == [i % 4 != 0 for i in range(10)]
+    assert (flags["status"] == "ok").all()
+    for other in (runs[2], runs["resumed"]):
+        pd.testing.assert_frame_equal(other[0], flags)
+        np.testing.assert_allclose(other[1], R, atol=1e-9)
+        np.testing.assert_allclose(other[2], t, atol=1e-9)
