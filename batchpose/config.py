@@ -224,6 +224,12 @@ class TrackConfig:
     """Every this many tracked frames, pull the points back onto the mesh: find each point's patch of the
     mesh rendered at the tracked pose in the frame (NCC within ``render_search_px``) and solve again
     (0: never)."""
+    refresh_every: int = 32
+    """After this many tracked frames (or when fewer than ``reseed_fraction`` of the points survive), make
+    the tracked frame a new keyframe instead of estimating afresh: pull the pose onto the mesh rendered there
+    (as ``render_every``; the track ends if too few points are found) and seed new corners (0: never)."""
+    reseed_fraction: float = 0.75
+    """See ``refresh_every``."""
     render_search_px: int = 3
     """How far from its tracked position a point's rendered patch is looked for."""
     fb_max_px: float = 1.0
@@ -234,9 +240,9 @@ class TrackConfig:
     """Lucas-Kanade window side."""
     levels: int = 3
     """Lucas-Kanade pyramid levels above the full image."""
-    chunk_frames: int = 32
+    chunk_frames: int = 128
     """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on
-    ``--jobs``; each task starts with a full estimate (which also bounds how long a track can drift)."""
+    ``--jobs``; each task starts with a full estimate."""
 
 
 @dataclass(frozen=True)
@@ -352,6 +358,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("min_ncc", -1 <= tc.min_ncc <= 1, "be in [-1, 1]"),
         ("ncc_radius_px", tc.ncc_radius_px >= 1, "be >= 1"),
         ("render_every", tc.render_every >= 0, "be >= 0"),
+        ("refresh_every", tc.refresh_every >= 0, "be >= 0"),
+        ("reseed_fraction", 0 <= tc.reseed_fraction <= 1, "be in [0, 1]"),
         ("render_search_px", tc.render_search_px >= 1, "be >= 1"),
         ("levels", tc.levels >= 0, "be >= 0"),
         ("chunk_frames", tc.chunk_frames >= 1, "be >= 1"),

@@ -452,6 +452,21 @@ class PoseEstimator:
             return None
         return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy())
 
+    def _refresh(self, name: str, gray: np.ndarray, res, camera: Camera):
+        """A new keyframe at the tracked pose, checked against the mesh: pull the points onto the mesh
+        rendered there (:func:`batchpose.track.anchor_to_render`), then seed corners afresh at the pulled pose.
+        None when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
+        rendered = self._render_gray(name, res.track.cam_from_model, camera)
+        anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, self.conf.track)
+        if anchored is None:
+            return None
+        rec = PoseRecord("", name, "ok", cam_from_model=anchored.track.cam_from_model, confidence=res.track.confidence)
+        fresh = self._seed(name, gray, rec, camera)
+        if fresh is None:
+            return None
+        anchored.track = fresh
+        return anchored
+
     def _estimate_tracked(self, rgb: np.ndarray, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
         """:meth:`estimate_image` that follows live tracks instead (see :mod:`batchpose.track`)."""
         camera, tc = frame.camera, self.conf.track
@@ -473,10 +488,19 @@ class PoseEstimator:
             if res is None:
                 log.debug("%s: track of %s lost, estimating afresh", frame.frame_id, name)
                 continue
+            t_refresh = 0.0
             if tc.render_every and res.track.age % tc.render_every == 0:
                 rendered = self._render_gray(name, res.track.cam_from_model, camera)
                 anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc)
                 res = anchored if anchored is not None else res
+            old_age, thinning = res.track.age, len(res.track.xy) < tc.reseed_fraction * res.track.n_seeded
+            if tc.refresh_every and (old_age >= tc.refresh_every or thinning):
+                t1 = time.perf_counter()
+                res = self._refresh(name, gray, res, camera)
+                t_refresh = time.perf_counter() - t1
+                if res is None:
+                    log.debug("%s: track of %s no longer matches the mesh, estimating afresh", frame.frame_id, name)
+                    continue
             self._tracks[name] = moved = res.track
             out[name] = PoseRecord(
                 frame.frame_id,
@@ -489,7 +513,7 @@ class PoseEstimator:
                 n_inliers=res.n_inliers,
                 median_residual_px=res.median_residual_px,
                 inliers_px=moved.xy,
-                timings={"track": t_gray + time.perf_counter() - t0},
+                timings={"track": t_gray + time.perf_counter() - t0 - t_refresh, "seed": t_refresh},
                 tracked=True,
             )
         rest = [n for n in obj_names if n not in out]
