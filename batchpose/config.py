@@ -224,7 +224,7 @@ class TrackConfig:
     """Every this many tracked frames, pull the points back onto the mesh: find each point's patch of the
     mesh rendered at the tracked pose in the frame (NCC within ``render_search_px``) and solve again
     (0: never)."""
-    refresh_every: int = 32
+    refresh_every: int = 0
     """After this many tracked frames (or when fewer than ``reseed_fraction`` of the points survive), make
     the tracked frame a new keyframe instead of estimating afresh: pull the pose onto the mesh rendered there
     (as ``render_every``; the track ends if too few points are found) and seed new corners (0: never)."""
@@ -240,9 +240,10 @@ class TrackConfig:
     """Lucas-Kanade window side."""
     levels: int = 3
     """Lucas-Kanade pyramid levels above the full image."""
-    chunk_frames: int = 128
+    chunk_frames: int = 32
     """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on
-    ``--jobs``; each task starts with a full estimate."""
+    ``--jobs``; each task starts with a full estimate (which also bounds how long a track can drift; with
+    ``refresh_every`` longer tasks stay accurate)."""
 
 
 @dataclass(frozen=True)

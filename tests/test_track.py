@@ -102,6 +102,28 @@ def test_render_anchoring_removes_flow_drift(cracker_model, cracker_library, cli
     assert max(errors[1:]) < 0.001, errors
 
 
+def test_refresh_keeps_a_true_track_and_ends_a_drifted_one(cracker_model, cracker_library, clip):
+    """A refresh (track.refresh_every) re-seeds a track whose pose matches the mesh in the frame, and ends
+    one that has drifted farther than the NCC search reaches (here: 2 cm sideways, ~20 px)."""
+    from batchpose.track import TrackResult
+
+    est = make_estimator(cracker_model, cracker_library)
+    cam = Camera(K_SYN, 640, 480)
+    img, T = clip[3]
+    gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    from batchpose.poses import PoseRecord
+
+    start = est._seed(cracker_model.name, gray, PoseRecord("", cracker_model.name, "ok", cam_from_model=T), cam)
+    start.age = 32
+    kept = est._refresh(cracker_model.name, gray, TrackResult(start, len(start.xy), 0.1), cam)
+    assert kept is not None and kept.track.age == 0 and len(kept.track.xy) >= 50
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    assert add_error(kept.track.cam_from_model, T, pts) < 0.001
+    drifted = dataclasses.replace(start, cam_from_model=T.copy())
+    drifted.cam_from_model[0, 3] += 0.02
+    assert est._refresh(cracker_model.name, gray, TrackResult(drifted, len(start.xy), 0.1), cam) is None
+
+
 @pytest.mark.parametrize(
     ("change", "expect"),
     [
