@@ -157,6 +157,26 @@ def test_when_a_track_starts_and_ends(cracker_model, cracker_library, clip, chan
     assert all(r.ok for r in recs)
 
 
+def test_tracking_with_lens_distortion(cracker_model, cracker_library, clip):
+    """The clip seen through a lens with barrel distortion (k1 = -0.25): seeding looks the depth up at the
+    undistorted position and flow works in the distorted image; tracked poses stay within 1 % of the
+    diameter (1.5 mm here; looking the depth up at the distorted position instead gives 3.4-3.9 mm)."""
+    dist = np.array([-0.25, 0.05, 0.0, 0.0, 0.0])
+    h, w = 480, 640
+    grid = np.stack(np.meshgrid(np.arange(w), np.arange(h)), axis=-1).reshape(-1, 1, 2).astype(np.float64)
+    src = cv2.undistortPoints(grid, K_SYN, dist, P=K_SYN).reshape(h, w, 2).astype(np.float32)
+    frames = []
+    for i, (img, _) in enumerate(clip[:6]):
+        seen = cv2.remap(img, src[..., 0], src[..., 1], cv2.INTER_LINEAR)  # pinhole image -> distorted
+        frames.append(dataclasses.replace(frame_of(seen, i), camera=Camera(K_SYN, 640, 480, dist=dist)))
+    est = make_estimator(cracker_model, cracker_library)
+    recs = run_clip(est, frames, cracker_model.name)
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    errors = [add_error(r.cam_from_model, T, pts) for r, (_, T) in zip(recs, clip[:6], strict=False)]
+    assert [r.tracked for r in recs] == [False] + [True] * 5
+    assert max(errors) < 0.01 * cracker_model.diameter_m, errors
+
+
 def test_a_cut_is_not_tracked(cracker_model, cracker_library, clip):
     """A cut to another view of the object (next im_id, as in a spliced log): the flow check loses the
     track and the frame is estimated afresh, correctly."""
