@@ -1,15 +1,18 @@
 """Frame-to-frame tracking: follow a confident pose into the next frame without SIFT or matching.
 
 A recording's consecutive frames differ by a few pixels, so after a confident full estimate batchpose
-seeds corners on the object (Shi-Tomasi, inside the silhouette rendered at that pose, lifted to model-frame
-3D points through the rendered depth) and, in each following frame, moves them with pyramidal Lucas-Kanade
-optical flow (kept only when flowing back lands within ``fb_max_px`` of the start) and solves the pose by
-Levenberg-Marquardt from the previous pose, trimming points whose reprojection error exceeds
-``reproj_px``. The 3D points never change while a track lives, so the pose does not drift in the model;
-only the flow can drift, and a track ends (the next frame is estimated afresh) when fewer than
-``min_fraction`` of its seeded points survive, after ``redetect_every`` frames, at a scene change or a gap
-in time. Pure computation: the caller (:class:`batchpose.estimate.PoseEstimator`) keeps one
-:class:`Track` per object.
+seeds corners on the object (:func:`seed`: Shi-Tomasi, inside the silhouette rendered at that pose and
+where the frame correlates with the rendered mesh, so not on occluders; lifted to model-frame 3D points
+through the rendered depth) and, in each following frame, moves them (:func:`follow`) with pyramidal
+Lucas-Kanade optical flow (kept only when flowing back lands within ``fb_max_px`` of the start, then
+re-aligned by flow straight from the keyframe so frame-to-frame errors do not add up) and solves the pose
+by Levenberg-Marquardt from the previous pose, trimming points whose reprojection error exceeds
+``reproj_px``. The 3D points never change while a track lives; only the flow can drift. Optionally
+(:func:`anchor_to_render`) the points are found again by NCC against the mesh rendered at the tracked pose,
+which removes drift altogether. A track ends (the next frame is estimated afresh) when fewer than
+``min_fraction`` of its seeded points survive, at a scene change or a gap in time. Pure computation: the
+caller (:class:`batchpose.estimate.PoseEstimator`) keeps one :class:`Track` per object and decides when
+tracks start, end and are refreshed.
 """
 
 from __future__ import annotations
