@@ -317,20 +317,9 @@ class PoseEstimator:
             xy_q, desc_q: the keypoints guided matching uses.
         """
         conf = self.conf
-        model = self.models[name]
 
         def render(T):
-            return self.renderer.render(
-                model.content_hash,
-                model.mesh,
-                T,
-                camera.K,
-                camera.width,
-                camera.height,
-                "flat",
-                conf.render.znear_m,
-                conf.render.zfar_m,
-            )
+            return self._render(name, T, camera)
 
         ok = [p[0] for p in passes if p[0] is not None and p[0].status == "ok"]
         starts = [r.cam_from_model for r in ok][: conf.refine.hypotheses]
@@ -424,6 +413,7 @@ class PoseEstimator:
         return same_camera and 0 < gap_s <= self.conf.track.max_gap_s
 
     def _render(self, name: str, T: np.ndarray, camera: Camera):
+        """The object's mesh at pose ``T`` in ``camera``: (rgb, depth_m), albedo shading."""
         model = self.models[name]
         return self.renderer.render(
             model.content_hash,

@@ -132,6 +132,26 @@ def _residuals(X, xy, rvec, tvec, K, dist) -> np.ndarray:
     return np.linalg.norm(proj.reshape(-1, 2) - xy, axis=1)
 
 
+def _solve_lm(X, xy, T, K, dist, conf: TrackConfig, n_needed: float):
+    """LM from pose ``T``, trimming twice; (pose, kept mask, median residual) or None."""
+    rvec = cv2.Rodrigues(T[:3, :3])[0]
+    tvec = T[:3, 3].reshape(3, 1).copy()
+    keep = np.ones(len(xy), bool)
+    for thresh in (None, conf.reproj_px):
+        rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
+        r = _residuals(X, xy, rvec, tvec, K, dist)
+        keep = r <= (max(conf.reproj_px, 3.0 * float(np.median(r[keep]))) if thresh is None else thresh)
+        if keep.sum() < n_needed:
+            return None
+    rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(rvec)[0]
+    out[:3, 3] = tvec.ravel()
+    if out[2, 3] <= 0:
+        return None
+    return out, keep, float(np.median(_residuals(X[keep], xy[keep], rvec, tvec, K, dist)))
+
+
 def follow(
     prev_gray: np.ndarray, gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
 ) -> TrackResult | None:
@@ -166,25 +186,15 @@ def follow(
         pk = pk.reshape(-1, 2)
         agree = (stk.ravel() == 1) & (np.linalg.norm(pk - xy, axis=1) <= conf.anchor_px)
         xy[agree] = pk[agree]
-    rvec = cv2.Rodrigues(track.cam_from_model[:3, :3])[0]
-    tvec = track.cam_from_model[:3, 3].reshape(3, 1).copy()
-    # LM from the previous pose, twice trimming the points that do not fit (occluders, flow slips).
-    keep = np.ones(len(xy), bool)
-    for thresh in (None, conf.reproj_px):
-        rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
-        r = _residuals(X, xy, rvec, tvec, K, dist)
-        keep = r <= (max(conf.reproj_px, 3.0 * float(np.median(r[keep]))) if thresh is None else thresh)
-        if keep.sum() < max(conf.min_points, conf.min_fraction * track.n_seeded):
-            return None
-    rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
-    r = _residuals(X[keep], xy[keep], rvec, tvec, K, dist)
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(rvec)[0]
-    T[:3, 3] = tvec.ravel()
-    if T[2, 3] <= 0:
+    # LM from the previous pose, trimming the points that do not fit (occluders, flow slips).
+    solved = _solve_lm(
+        X, xy, track.cam_from_model, K, dist, conf, max(conf.min_points, conf.min_fraction * track.n_seeded)
+    )
+    if solved is None:
         return None
+    T, keep, med = solved
     # The points move on to where the pose puts them: single points cannot wander off the rigid object.
-    snapped, _ = cv2.projectPoints(X[keep], rvec, tvec, K, dist)
+    snapped, _ = cv2.projectPoints(X[keep], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)
     moved = Track(
         snapped.reshape(-1, 2).astype(np.float32),
         X[keep],
@@ -195,27 +205,7 @@ def follow(
         track.key_gray,
         key_xy[keep] if key_xy is not None else None,
     )
-    return TrackResult(moved, int(keep.sum()), float(np.median(r)))
-
-
-def _solve_lm(X, xy, T, K, dist, conf: TrackConfig, n_needed: float):
-    """LM from pose ``T``, trimming twice; (pose, kept mask, median residual) or None."""
-    rvec = cv2.Rodrigues(T[:3, :3])[0]
-    tvec = T[:3, 3].reshape(3, 1).copy()
-    keep = np.ones(len(xy), bool)
-    for thresh in (None, conf.reproj_px):
-        rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
-        r = _residuals(X, xy, rvec, tvec, K, dist)
-        keep = r <= (max(conf.reproj_px, 3.0 * float(np.median(r[keep]))) if thresh is None else thresh)
-        if keep.sum() < n_needed:
-            return None
-    rvec, tvec = cv2.solvePnPRefineLM(X[keep], xy[keep], K, dist, rvec, tvec)
-    out = np.eye(4)
-    out[:3, :3] = cv2.Rodrigues(rvec)[0]
-    out[:3, 3] = tvec.ravel()
-    if out[2, 3] <= 0:
-        return None
-    return out, keep, float(np.median(_residuals(X[keep], xy[keep], rvec, tvec, K, dist)))
+    return TrackResult(moved, int(keep.sum()), med)
 
 
 def anchor_to_render(
