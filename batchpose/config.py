@@ -257,6 +257,11 @@ class EstimatorConfig:
     confidence_inliers: float = 15.0
     """Confidence = (1 - exp(-n_inliers / this)) * exp(-median_residual_px / confidence_residual_px)."""
     confidence_residual_px: float = 4.0
+    min_object_px: float = 12.0
+    """A pose at which the object's diameter would span fewer pixels than this is implausible: the frame
+    could not show it (status pnp_failed, and never used to place the fine pass's box)."""
+    max_object_image_fraction: float = 3.0
+    """... or more than this many times the image's longer side (or the object is behind the camera)."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)

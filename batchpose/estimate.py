@@ -99,6 +99,7 @@ class PoseEstimator:
         self._lib_index: dict[str, object] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flip_cache: dict[str, list[np.ndarray]] = {}
+        self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._tracks: dict[str, Track] = {}
         self._prev: dict | None = None
 
@@ -224,7 +225,9 @@ class PoseEstimator:
             rec.reason = f"{len(corr)} matches after the ratio test, need {conf.min_matches}"
             return rec
         rec.status, rec.reason = res.status, res.reason
-        if not res.status == "ok":
+        if res.status == "ok" and (why := self._implausible(name, res.cam_from_model, camera)):
+            rec.status, rec.reason = "pnp_failed", why
+        if not rec.status == "ok":
             return rec
         rec.cam_from_model = res.cam_from_model
         rec.n_inliers = res.n_inliers
@@ -256,6 +259,21 @@ class PoseEstimator:
             timings[k] = timings.get(k, 0.0) + v
         return res
 
+    def _implausible(self, name: str, pose: np.ndarray, camera: Camera) -> str:
+        """Why ``pose`` cannot be what the frame shows ("" when it can): the object's apparent size."""
+        if name not in self._extent:
+            pts = self.libraries[name].pts3d
+            self._extent[name] = (pts.mean(axis=0), float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0))))
+        centre, diam = self._extent[name]
+        z = float(pose[2, :3] @ centre + pose[2, 3])
+        if z <= 0:
+            return f"implausible pose: the object is behind the camera (z = {z:.2f} m)"
+        span = float(camera.K[0, 0]) * diam / z
+        lo, hi = self.conf.min_object_px, self.conf.max_object_image_fraction * max(camera.width, camera.height)
+        if not lo <= span <= hi:
+            return f"implausible pose: the object would span {span:.0f} px at {z:.2f} m (allowed {lo:.0f}-{hi:.0f} px)"
+        return ""
+
     def _object_box(self, name, res, corr: Correspondences, camera: Camera, gt_pose) -> tuple | None:
         """The object's image box (x0, y0, x1, y1), grown by the fine margins and clipped; None if unknown.
 
@@ -264,7 +282,7 @@ class PoseEstimator:
         """
         fc = self.conf.fine
         pts = None
-        coarse_ok = res is not None and res.status == "ok"
+        coarse_ok = res is not None and res.status == "ok" and not self._implausible(name, res.cam_from_model, camera)
         pose = gt_pose if self.conf.match.roi == "gt_box" else (res.cam_from_model if coarse_ok else None)
         if pose is not None:
             X = self.libraries[name].pts3d.astype(np.float64)

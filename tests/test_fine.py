@@ -117,3 +117,28 @@ def test_every_bundled_pipeline_loads(name):
         assert conf.track.enabled and conf.fine.skip_inliers == 0
     if name in ("paper", "oracle_roi", "tp_ub"):
         assert not conf.track.enabled or conf.match.roi == "gt_box" or conf.method == "tp_ub"
+
+
+def test_implausible_poses_are_failed_not_reported(cracker_model, cracker_library):
+    """A pose whose object would be a few pixels wide, fill the image many times over or sit behind the
+    camera is reported as pnp_failed with the reason, never as an ok pose (it was 144 m away once)."""
+    rng = np.random.default_rng(8)
+    T = random_pose(rng, cracker_model.center_m)
+    img = compose(rng, cracker_model, T)
+    cam = Camera(K_SYN, 640, 480)
+    libs = {cracker_model.name: cracker_library}
+    est = PoseEstimator(EstimatorConfig(), libs)
+    assert est._implausible(cracker_model.name, T, cam) == ""
+    far, near, behind = T.copy(), T.copy(), T.copy()
+    far[:3, 3] *= 200.0
+    near[:3, 3] *= 0.02
+    behind[:3, 3] *= -1.0
+    assert "would span" in est._implausible(cracker_model.name, far, cam)
+    assert "would span" in est._implausible(cracker_model.name, near, cam)
+    assert "behind the camera" in est._implausible(cracker_model.name, behind, cam)
+    rec = est.estimate_image(img, cam, [cracker_model.name])[0]
+    assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
+    strict = PoseEstimator(dataclasses.replace(EstimatorConfig(), min_object_px=5000.0), libs)
+    rec = strict.estimate_image(img, cam, [cracker_model.name])[0]
+    assert rec.status == "pnp_failed" and rec.reason.startswith("implausible pose: the object would span")
+    assert rec.cam_from_model is None
