@@ -26,6 +26,7 @@ from batchpose.weights import model_voxel_grid
 log = logging.getLogger("batchpose")
 
 FILES = ("views.parquet", "templates.npz", "voxels.npz")
+LIBRARY_FORMAT = 2  # part of the cache key: bumped when the files gain a field (2: keypoint shapes)
 
 
 def default_cache_dir() -> Path:
@@ -45,6 +46,7 @@ def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: in
 
 def library_key(model: ObjectModel, conf: EstimatorConfig, K: np.ndarray, width: int, height: int) -> str:
     return config_hash(
+        LIBRARY_FORMAT,
         model.content_hash,
         model.scale,
         conf.mesh,
@@ -73,6 +75,7 @@ def save(lib: TemplateLibrary, out_dir: Path, voxel_m: float) -> Path:
         xy=lib.xy,
         desc=lib.desc,
         pts3d=lib.pts3d,
+        shapes=lib.shapes,
         K=lib.K,
         size=np.array([lib.width, lib.height]),
         obj_name=np.array(lib.obj_name),
@@ -103,6 +106,7 @@ def load(lib_dir: Path) -> TemplateLibrary:
                 xy=z["xy"],
                 desc=z["desc"],
                 pts3d=z["pts3d"],
+                shapes=z["shapes"],
             )
     except (OSError, KeyError, ValueError) as e:
         raise DataError(

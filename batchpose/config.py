@@ -185,6 +185,22 @@ class FineConfig:
     cluster_radius_px: float = 48.0
     """Without a coarse pose: the box is that of the matched keypoints near the densest of them, within
     twice this radius."""
+    locate: bool = True
+    """When the whole-frame pose is weak, also run the fine pass where the frame's keypoints vote the
+    object to be (:func:`batchpose.correspondences.locate`: each match predicts the object's centre and
+    size from its keypoints' sizes and angles); the pass with the most inliers wins. A small object in
+    clutter often loses the whole-frame pass to a handful of chance matches elsewhere."""
+    locate_below: float = 0.5
+    """"Weak": no pose, an implausible one, or confidence below this."""
+    locate_votes: int = 4
+    """Fewest agreeing keypoints for a location."""
+    locate_ratio: float = 0.8
+    """Ratio test (against the nearest descriptor of another 3D point) for a frame keypoint to vote."""
+    locate_pairs: bool = True
+    """Add the agreeing votes' 2D-3D pairs to the pairs matched in the located box."""
+    locate_angle_deg: float = 30.0
+    """Width of the in-plane rotation bins (0: do not vote on rotation). Chance matches agree on a
+    place less often when they must also agree on the object's in-plane rotation."""
 
 
 @dataclass(frozen=True)
@@ -353,6 +369,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: weights.voxel_m must be positive, got {conf.weights.voxel_m}")
     if conf.fine.upsample < 1 or conf.fine.max_side_px < 32:
         raise ConfigError(f"{where}: fine.upsample must be >= 1 and fine.max_side_px >= 32")
+    if not 0 < conf.fine.locate_ratio <= 1 or not 0 <= conf.fine.locate_angle_deg <= 180:
+        raise ConfigError(f"{where}: fine.locate_ratio must be in (0, 1] and fine.locate_angle_deg in [0, 180]")
     tc = conf.track
     for key, ok, need in (
         ("max_gap_s", tc.max_gap_s > 0, "be positive"),

@@ -46,6 +46,17 @@ class Correspondences:
         return Correspondences(self.x[mask], self.X[mask], self.view_ids[mask], self.templates, self.n_candidates)
 
 
+@dataclass(frozen=True)
+class Location:
+    """Where :func:`locate` puts the object: image centre and diameter (pixels), the number of agreeing
+    votes and their 2D-3D pairs."""
+
+    centre_xy: tuple[float, float]
+    size_px: float
+    votes: int
+    pairs: Correspondences
+
+
 def seed_c_rand(seed: int = 0) -> None:
     """Seed the generators FLANN's randomised KD-trees draw from (C ``rand()`` in older OpenCV builds,
     OpenCV's thread RNG in newer ones), so an index does not depend on what ran before it."""
@@ -173,3 +184,98 @@ def match_query_to_template(
     ok = dist[:, 0] < conf.ratio * rival
     q_idx = np.nonzero(ok)[0]
     return _select_top_k(q_idx, idx[q_idx, 0], dist[q_idx, 0], lib, xy_q, conf.top_k_templates)
+
+
+def locate(
+    xy_q: np.ndarray,
+    shapes_q: np.ndarray,
+    desc_q: np.ndarray,
+    lib_index,
+    lib: TemplateLibrary,
+    conf: MatchConfig,
+    width: int,
+    height: int,
+    ratio: float = 0.8,
+    angle_bin_deg: float = 30.0,
+    min_votes: int = 4,
+) -> Location | None:
+    """Where the object is, by Hough voting (Lowe 2004, §7): each frame keypoint matched into the library
+    predicts the object's image centre, size and in-plane rotation from the template keypoint's position,
+    size and angle.
+
+    A frame keypoint is matched to its nearest template descriptor when it passes the ratio test
+    ``ratio`` against the nearest descriptor of another 3D point. The pair's size ratio ``s`` and angle
+    difference ``a`` map the template's vector from the keypoint to the object's centre (the mean of the
+    library's 3D points, projected) into the frame; the object's size (its diameter in the template,
+    times ``s``) and ``a`` are voted for too. Votes fall into cells of 1/20 of the image's longer side,
+    one octave of size and ``angle_bin_deg`` of rotation (0: rotation not voted on), each into the two
+    nearest cells per dimension. Chance matches scatter; the object's own pairs agree.
+
+    Returns:
+        The fullest cell's location (the medians of its agreeing votes) and those votes' pairs, or None
+        when fewer than ``min_votes`` frame keypoints agree.
+    """
+    if lib_index is None or len(desc_q) == 0 or len(lib.shapes) != len(lib.desc):
+        return None
+    k = min(4, len(lib.desc))
+    idx, dist = knn(lib_index, desc_q, k, conf)
+    p = lib.pts3d[idx]
+    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
+    far[:, 0] = False
+    rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
+    q = np.nonzero(dist[:, 0] < ratio * rival)[0]
+    if len(q) < min_votes:
+        return None
+    t = idx[q, 0]
+    # The object's centre and diameter in each template view.
+    centre = lib.pts3d.mean(axis=0).astype(np.float64)
+    diam = float(np.linalg.norm(lib.pts3d.max(axis=0) - lib.pts3d.min(axis=0)))
+    T = np.stack([lib.cam_from_model(v) for v in range(lib.n_views)])
+    c_cam = T[:, :3, :3] @ centre + T[:, :3, 3]
+    c_img = (c_cam @ lib.K.T)[:, :2] / c_cam[:, 2:3]
+    d_img = lib.K[0, 0] * diam / c_cam[:, 2]
+    v = lib.view_ids[t]
+    s = shapes_q[q, 0] / np.maximum(lib.shapes[t, 0], 1e-6)
+    a_deg = (shapes_q[q, 1] - lib.shapes[t, 1]) % 360.0
+    a = np.deg2rad(a_deg)
+    r = c_img[v] - lib.xy[t]
+    cos, sin = np.cos(a), np.sin(a)
+    c = xy_q[q] + s[:, None] * np.stack([cos * r[:, 0] - sin * r[:, 1], sin * r[:, 0] + cos * r[:, 1]], axis=1)
+    size = s * d_img[v]
+    inside = (c[:, 0] >= 0) & (c[:, 0] < width) & (c[:, 1] >= 0) & (c[:, 1] < height) & (size > 1.0)
+    c, size, a_deg, q, t = c[inside], size[inside], a_deg[inside], q[inside], t[inside]
+    if len(c) < min_votes:
+        return None
+    cell = max(width, height) / 20.0
+    cols = [c / cell, np.log2(size)[:, None]]
+    n_rot = int(round(360.0 / angle_bin_deg)) if angle_bin_deg > 0 else 0
+    if n_rot:
+        cols.append((a_deg / (360.0 / n_rot))[:, None])
+    f = np.hstack(cols)  # continuous bin coordinates
+    lo = np.floor(f - 0.5).astype(np.int64)  # the two nearest cells per dimension: lo and lo + 1
+    base = lo.min(axis=0)
+    dims = lo.max(axis=0) - base + 2
+    if n_rot:
+        base[3], dims[3] = 0, n_rot  # rotation wraps around
+    acc = np.zeros(int(np.prod(dims)), np.int32)
+    for corner in np.ndindex(*(2,) * f.shape[1]):
+        cells = lo - base + np.array(corner)
+        if n_rot:
+            cells[:, 3] %= n_rot
+        np.add.at(acc, np.ravel_multi_index(cells.T, dims), 1)
+    best = np.unravel_index(int(np.argmax(acc)), dims)
+    d = np.abs(f - (np.array(best) + base + 0.5))  # distance from the fullest cell's centre, in cells
+    if n_rot:
+        d[:, 3] = np.minimum(d[:, 3] % n_rot, n_rot - d[:, 3] % n_rot)
+    agree = np.all(d <= 1.0, axis=1)
+    if agree.sum() < min_votes:
+        return None
+    pairs = Correspondences(
+        xy_q[q[agree]].astype(np.float64),
+        lib.pts3d[t[agree]].astype(np.float64),
+        lib.view_ids[t[agree]].astype(np.int32),
+        tuple(np.unique(lib.view_ids[t[agree]]).tolist()),
+        int(agree.sum()),
+    )
+    centre = (float(np.median(c[agree, 0])), float(np.median(c[agree, 1])))
+    return Location(centre, float(np.median(size[agree])), int(agree.sum()), pairs)

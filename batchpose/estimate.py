@@ -17,12 +17,13 @@ from batchpose.config import EstimatorConfig
 from batchpose.correspondences import (
     Correspondences,
     flann_index,
+    locate,
     match_query_to_template,
     match_template_to_query,
     vote_views,
 )
 from batchpose.errors import BatchposeError, ImageError
-from batchpose.features import detect, make_sift, to_gray
+from batchpose.features import detect, detect_shapes, make_sift, to_gray
 from batchpose.frames import Camera, Frame, ObjectPose, decode_image
 from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
@@ -69,6 +70,27 @@ def fine_keypoints(gray: np.ndarray, box: tuple[int, int, int, int], conf: Estim
     xy, desc = detect(crop, conf.features, sift=sift)
     xy = (xy + 0.5) / s - 0.5 + np.array([x0, y0], np.float32)
     return xy.astype(np.float32), desc
+
+
+def _box_around(centre, size_px: float, fc, camera: Camera) -> tuple[int, int, int, int] | None:
+    """A square box of side ``size_px`` (the object's diameter) around ``centre``, grown by the fine
+    margins and clipped to the image; None when under 16 px."""
+    half = 0.5 * size_px * (1.0 + 2.0 * fc.margin) + fc.margin_px
+    x0, y0 = max(int(np.floor(centre[0] - half)), 0), max(int(np.floor(centre[1] - half)), 0)
+    x1, y1 = min(int(np.ceil(centre[0] + half)), camera.width), min(int(np.ceil(centre[1] + half)), camera.height)
+    if x1 - x0 < 16 or y1 - y0 < 16:
+        return None
+    return x0, y0, x1, y1
+
+
+def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:
+    """Intersection over the smaller box's area."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    if w <= 0 or h <= 0:
+        return 0.0
+    small = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
+    return w * h / small
 
 
 class PoseEstimator:
@@ -141,7 +163,7 @@ class PoseEstimator:
                 raise BatchposeError(f"{frame_id}: no template library for object {name!r}")
         t0 = time.perf_counter()
         gray = to_gray(rgb)
-        xy_q, desc_q = detect(gray, self.conf.features, sift=self._sift)
+        xy_q, desc_q, shapes_q = detect_shapes(gray, self.conf.features, sift=self._sift)
         t_sift = time.perf_counter() - t0
         query_index = None
         if self.conf.match.direction == "template_to_query":
@@ -149,7 +171,9 @@ class PoseEstimator:
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
         records = []
         for name in obj_names:
-            rec = self._estimate_object(name, gray, xy_q, desc_q, query_index, camera, gt_by_name.get(name), frame_id)
+            rec = self._estimate_object(
+                name, gray, (xy_q, desc_q, shapes_q), query_index, camera, gt_by_name.get(name), frame_id
+            )
             rec.timings["sift"] = t_sift
             records.append(rec)
         return records
@@ -184,8 +208,7 @@ class PoseEstimator:
         self,
         name: str,
         gray: np.ndarray,
-        xy_q: np.ndarray,
-        desc_q: np.ndarray,
+        keypoints: tuple[np.ndarray, np.ndarray, np.ndarray],
         query_index,
         camera: Camera,
         gt_pose: np.ndarray | None,
@@ -194,6 +217,7 @@ class PoseEstimator:
         conf = self.conf
         if conf.method == "tp_ub":
             return self._tp_ub(name, gt_pose, frame_id)
+        xy_q, desc_q, shapes_q = keypoints
         timings: dict[str, float] = {}
         rec = PoseRecord(frame_id, name, "ok", obj_id=self.obj_ids.get(name, 0), timings=timings)
         t0 = time.perf_counter()
@@ -205,10 +229,33 @@ class PoseEstimator:
         strong = res is not None and res.status == "ok" and 0 < conf.fine.skip_inliers <= res.n_inliers
         if conf.fine.enabled and not strong:
             t0 = time.perf_counter()
-            fine = self._fine_pass(name, gray, res, corr, camera, gt_pose)
-            timings["fine"] = time.perf_counter() - t0
+            box = self._object_box(name, res, corr, camera, gt_pose)
+            fine = None if box is None else self._fine_pass(name, gray, box, camera)
             if fine is not None:
                 passes.insert(0, fine)
+            if conf.fine.locate and conf.match.roi == "none" and self._weak(name, res, camera):
+                # The whole-frame pose is weak: search again where the keypoints' votes put the object.
+                found = locate(
+                    xy_q,
+                    shapes_q,
+                    desc_q,
+                    self._library_index(name),
+                    self.libraries[name],
+                    conf.match,
+                    camera.width,
+                    camera.height,
+                    ratio=conf.fine.locate_ratio,
+                    angle_bin_deg=conf.fine.locate_angle_deg,
+                    min_votes=conf.fine.locate_votes,
+                )
+                hough = None if found is None else _box_around(found.centre_xy, found.size_px, conf.fine, camera)
+                if hough is not None and (box is None or _overlap(hough, box) < 0.5):
+                    located = self._fine_pass(
+                        name, gray, hough, camera, found.pairs if conf.fine.locate_pairs else None
+                    )
+                    if located is not None:
+                        passes.insert(0, located)
+            timings["fine"] = time.perf_counter() - t0
         # The base result: the pass with the most inliers (the fine pass on ties).
         res, corr, xy_k, desc_k = max(passes, key=lambda p: p[0].n_inliers if p[0] and p[0].status == "ok" else -1)
         rec.n_matches = len(corr)
@@ -306,14 +353,27 @@ class PoseEstimator:
             return None
         return int(x0), int(y0), int(x1), int(y1)
 
-    def _fine_pass(self, name, gray, res, corr, camera, gt_pose):
-        """Match again inside the object's box, upsampled: (result, pairs, keypoints, descriptors) or None."""
-        box = self._object_box(name, res, corr, camera, gt_pose)
-        if box is None:
-            return None
+    def _weak(self, name: str, res, camera: Camera) -> bool:
+        """True when the whole-frame pass found no pose, an implausible one or one below
+        ``fine.locate_below`` confidence."""
+        if res is None or res.status != "ok" or self._implausible(name, res.cam_from_model, camera):
+            return True
+        return confidence(res.n_inliers, res.median_residual_px, self.conf) < self.conf.fine.locate_below
+
+    def _fine_pass(self, name, gray, box, camera, extra: Correspondences | None = None):
+        """Match again inside ``box``, upsampled, plus the ``extra`` pairs: (result, pairs, keypoints,
+        descriptors) or None."""
         xy_f, desc_f = fine_keypoints(gray, box, self.conf, self._sift)
         index = flann_index(desc_f, self.conf.match) if self.conf.match.direction == "template_to_query" else None
         corr_f = self._match(name, xy_f, desc_f, index, None, self.conf.fine.prefilter_views)
+        if extra is not None and len(extra):
+            corr_f = Correspondences(
+                np.vstack([corr_f.x, extra.x]),
+                np.vstack([corr_f.X, extra.X]),
+                np.concatenate([corr_f.view_ids, extra.view_ids]),
+                corr_f.templates,
+                corr_f.n_candidates + extra.n_candidates,
+            )
         res_f = self._solve(name, corr_f, camera, {})
         if res_f is None:
             return None

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from batchpose.config import FeatureConfig, RenderConfig
-from batchpose.features import detect, make_sift, to_gray
+from batchpose.features import detect_shapes, make_sift, to_gray
 from batchpose.mesh import ObjectModel
 from batchpose.views import sample_views
 
@@ -33,6 +33,8 @@ class TemplateLibrary:
         xy: (N, 2) float32 keypoint pixel position in its template.
         desc: (N, 128) float32 descriptors.
         pts3d: (N, 3) float32 model-frame 3D points, metres.
+        shapes: (N, 2) float32 keypoint (size_px, angle_deg) in its template (see
+            :func:`batchpose.features.detect_shapes`).
     """
 
     obj_name: str
@@ -45,6 +47,7 @@ class TemplateLibrary:
     xy: np.ndarray
     desc: np.ndarray
     pts3d: np.ndarray
+    shapes: np.ndarray
 
     @property
     def n_views(self) -> int:
@@ -122,7 +125,7 @@ def render_templates(
     )
     sift = make_sift(feature_conf)
     pad = feature_conf.crop_padding_px
-    all_ids, all_xy, all_desc, all_pts, rows = [], [], [], [], []
+    all_ids, all_xy, all_desc, all_pts, all_shapes, rows = [], [], [], [], [], []
     for view in views:
         T = view["cam_from_model"]
         rgb, depth = renderer.render(
@@ -141,7 +144,7 @@ def render_templates(
         if len(xs):
             x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, width)
             y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, height)
-            xy, desc = detect(to_gray(rgb[y0:y1, x0:x1]), feature_conf, sift=sift)
+            xy, desc, shapes = detect_shapes(to_gray(rgb[y0:y1, x0:x1]), feature_conf, sift=sift)
             xy = xy + np.array([x0, y0], np.float32)
             keep, pts = lift_keypoints(xy, depth, K, np.linalg.inv(T))
             n_kept = int(keep.sum())
@@ -149,6 +152,7 @@ def render_templates(
             all_xy.append(xy[keep])
             all_desc.append(desc[keep])
             all_pts.append(pts)
+            all_shapes.append(shapes[keep])
         rows.append(
             {
                 "view_id": view["view_id"],
@@ -176,4 +180,5 @@ def render_templates(
         xy=cat(all_xy, (0, 2), np.float32),
         desc=cat(all_desc, (0, 128), np.float32),
         pts3d=cat(all_pts, (0, 3), np.float32),
+        shapes=cat(all_shapes, (0, 2), np.float32),
     )

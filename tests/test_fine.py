@@ -142,3 +142,35 @@ def test_implausible_poses_are_failed_not_reported(cracker_model, cracker_librar
     rec = strict.estimate_image(img, cam, [cracker_model.name])[0]
     assert rec.status == "pnp_failed" and rec.reason.startswith("implausible pose: the object would span")
     assert rec.cam_from_model is None
+
+
+@pytest.mark.parametrize("angle_bin_deg", [30.0, 0.0])
+def test_locate_finds_the_object_centre_and_size(cracker_model, cracker_library, angle_bin_deg):
+    from batchpose.correspondences import flann_index, locate
+    from batchpose.features import detect_shapes
+
+    conf = EstimatorConfig()
+    index = flann_index(cracker_library.desc, conf.match)
+    rng = np.random.default_rng(11)
+    centre_m = cracker_library.pts3d.mean(axis=0)
+    diam = float(np.linalg.norm(cracker_library.pts3d.max(axis=0) - cracker_library.pts3d.min(axis=0)))
+    hits = 0
+    for _ in range(5):
+        T = random_pose(rng, cracker_model.center_m)
+        xy, desc, shapes = detect_shapes(to_gray(compose(rng, cracker_model, T)), conf.features)
+        found = locate(xy, shapes, desc, index, cracker_library, conf.match, 640, 480, angle_bin_deg=angle_bin_deg)
+        assert found is not None
+        (cx, cy), size, votes = found.centre_xy, found.size_px, found.votes
+        # The agreeing votes are 2D-3D pairs, most of them right.
+        assert len(found.pairs) == votes
+        X = found.pairs.X @ T[:3, :3].T + T[:3, 3]
+        reproj = np.linalg.norm((X @ K_SYN.T)[:, :2] / X[:, 2:3] - found.pairs.x, axis=1)
+        assert np.mean(reproj < 8.0) > 0.7, reproj
+        c = T[:3, :3] @ centre_m + T[:3, 3]
+        u, v = (K_SYN @ c)[:2] / c[2]
+        d_px = K_SYN[0, 0] * diam / c[2]
+        assert votes >= 4
+        hits += np.hypot(cx - u, cy - v) < 0.2 * d_px and 0.7 < size / d_px < 1.4
+    assert hits >= 4, hits
+    # Too few frame keypoints: no location.
+    assert locate(xy[:0], shapes[:0], desc[:0], index, cracker_library, conf.match, 640, 480) is None
