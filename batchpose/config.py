@@ -278,6 +278,10 @@ class EstimatorConfig:
     could not show it (status pnp_failed, and never used to place the fine pass's box)."""
     max_object_image_fraction: float = 3.0
     """... or more than this many times the image's longer side (or the object is behind the camera)."""
+    support_px: float = 2.0
+    """Poses from different passes and refinement hypotheses are compared by their support: the pairs they
+    reproject within this many pixels (0: GNC's inlier count, which a wrong pose gathering loose pairs at
+    5-8 px can win)."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)

@@ -256,8 +256,8 @@ class PoseEstimator:
                     if located is not None:
                         passes.insert(0, located)
             timings["fine"] = time.perf_counter() - t0
-        # The base result: the pass with the most inliers (the fine pass on ties).
-        res, corr, xy_k, desc_k = max(passes, key=lambda p: p[0].n_inliers if p[0] and p[0].status == "ok" else -1)
+        # The base result: the pass with the most support (the fine pass on ties).
+        res, corr, xy_k, desc_k = max(passes, key=lambda p: p[0].support(conf.support_px) if p[0] else -1)
         rec.n_matches = len(corr)
         rec.templates = corr.templates
         x_used = corr.x
@@ -425,6 +425,7 @@ class PoseEstimator:
                 conf.gnc,
                 lambda X: self._weights_for(name, X),
                 iterations=iterations,
+                support_px=conf.support_px,
             )
 
         def finish(r):
@@ -451,7 +452,7 @@ class PoseEstimator:
                     r = finish(r)
                 if r is not None and r.score > best.score:
                     best = r
-        if best is not None and ok and best.score < max(r.n_inliers for r in ok):
+        if best is not None and ok and best.result.n_inliers < max(r.n_inliers for r in ok):
             return None  # the guided pairs explain the frame worse than the template pairs
         return best
 

@@ -40,6 +40,12 @@ class PnpResult:
     def median_residual_px(self) -> float:
         return float(np.median(self.residuals_px[self.inliers])) if self.n_inliers else float("nan")
 
+    def support(self, px: float = 0.0) -> int:
+        """Pairs reprojected within ``px`` pixels (0: the inlier count); 0 when not ok."""
+        if self.status != "ok":
+            return 0
+        return int((self.residuals_px < px).sum()) if px > 0 else self.n_inliers
+
 
 def reprojection_errors(
     X: np.ndarray, x: np.ndarray, rvec: np.ndarray, tvec: np.ndarray, K: np.ndarray, dist: np.ndarray

@@ -33,10 +33,12 @@ class Refined:
     result: PnpResult
     x: np.ndarray
     X: np.ndarray
+    support_px: float = 0.0
 
     @property
     def score(self) -> int:
-        return self.result.n_inliers if self.result.status == "ok" else 0
+        """The pairs reprojected within ``support_px`` (0: the inliers)."""
+        return self.result.support(self.support_px)
 
 
 def guided_matches(
@@ -107,9 +109,10 @@ def refine_pose(
     gnc_conf: GncConfig,
     w_geom_fn: Callable[[np.ndarray], np.ndarray] | None = None,
     iterations: int | None = None,
+    support_px: float = 0.0,
 ) -> Refined | None:
     """Refine a pose by ``iterations`` (default ``conf.iterations``) rounds of render -> SIFT -> guided
-    match -> PnP.
+    match -> PnP; a round that scores lower (:attr:`Refined.score`, with ``support_px``) ends it.
 
     Returns:
         The last successful round (None when the first round finds too few pairs).
@@ -138,7 +141,7 @@ def refine_pose(
         res = solve_pose(x, X, K, dist, w, gnc_conf)
         if res.status != "ok":
             break
-        cand = Refined(res, x, X)
+        cand = Refined(res, x, X, support_px)
         if best is not None and cand.score < best.score:
             break
         best, T = cand, res.cam_from_model

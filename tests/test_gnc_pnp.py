@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import GncConfig
-from batchpose.gnc_pnp import solve_pose, to_matrix
+from batchpose.gnc_pnp import PnpResult, solve_pose, to_matrix
 from batchpose.weights import geom_weights
 from tests.conftest import K_SYN
 
@@ -79,3 +79,16 @@ def test_pure_noise_fails_or_reports_few_inliers():
     assert res.status in ("pnp_failed", "ok")
     if res.status == "ok":
         assert res.n_inliers < 25
+
+
+def test_support_counts_pairs_within_the_threshold():
+    res = PnpResult(
+        "ok",
+        cam_from_model=np.eye(4),
+        inliers=np.array([True, True, True, False, False]),
+        residuals_px=np.array([0.1, 1.5, 6.0, 1.0, 9.0]),
+    )
+    assert res.support() == 3  # 0: the inlier count
+    assert res.support(2.0) == 3  # 0.1, 1.5 and the outlier at 1.0
+    assert res.support(0.5) == 1
+    assert PnpResult("pnp_failed", residuals_px=np.zeros(4)).support(2.0) == 0
