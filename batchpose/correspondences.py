@@ -198,7 +198,8 @@ def locate(
     ratio: float = 0.8,
     angle_bin_deg: float = 30.0,
     min_votes: int = 4,
-) -> Location | None:
+    peaks: int = 1,
+) -> list[Location]:
     """Where the object is, by Hough voting (Lowe 2004, §7): each frame keypoint matched into the library
     predicts the object's image centre, size and in-plane rotation from the template keypoint's position,
     size and angle.
@@ -212,11 +213,12 @@ def locate(
     nearest cells per dimension. Chance matches scatter; the object's own pairs agree.
 
     Returns:
-        The fullest cell's location (the medians of its agreeing votes) and those votes' pairs, or None
-        when fewer than ``min_votes`` frame keypoints agree.
+        Up to ``peaks`` locations, fullest first, each with at least ``min_votes`` agreeing votes: the
+        fullest cell's (the medians of its agreeing votes, and those votes' pairs), then the fullest
+        cell of the votes left over, and so on.
     """
     if lib_index is None or len(desc_q) == 0 or len(lib.shapes) != len(lib.desc):
-        return None
+        return []
     k = min(4, len(lib.desc))
     idx, dist = knn(lib_index, desc_q, k, conf)
     p = lib.pts3d[idx]
@@ -225,7 +227,7 @@ def locate(
     rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
     q = np.nonzero(dist[:, 0] < ratio * rival)[0]
     if len(q) < min_votes:
-        return None
+        return []
     t = idx[q, 0]
     # The object's centre and diameter in each template view.
     centre = lib.pts3d.mean(axis=0).astype(np.float64)
@@ -245,7 +247,7 @@ def locate(
     inside = (c[:, 0] >= 0) & (c[:, 0] < width) & (c[:, 1] >= 0) & (c[:, 1] < height) & (size > 1.0)
     c, size, a_deg, q, t = c[inside], size[inside], a_deg[inside], q[inside], t[inside]
     if len(c) < min_votes:
-        return None
+        return []
     cell = max(width, height) / 20.0
     cols = [c / cell, np.log2(size)[:, None]]
     n_rot = int(round(360.0 / angle_bin_deg)) if angle_bin_deg > 0 else 0
@@ -257,25 +259,30 @@ def locate(
     dims = lo.max(axis=0) - base + 2
     if n_rot:
         base[3], dims[3] = 0, n_rot  # rotation wraps around
-    acc = np.zeros(int(np.prod(dims)), np.int32)
-    for corner in np.ndindex(*(2,) * f.shape[1]):
-        cells = lo - base + np.array(corner)
+    found: list[Location] = []
+    left = np.ones(len(f), bool)  # votes not yet explained by a location
+    while len(found) < peaks and left.sum() >= min_votes:
+        acc = np.zeros(int(np.prod(dims)), np.int32)
+        for corner in np.ndindex(*(2,) * f.shape[1]):
+            cells = lo[left] - base + np.array(corner)
+            if n_rot:
+                cells[:, 3] %= n_rot
+            np.add.at(acc, np.ravel_multi_index(cells.T, dims), 1)
+        best = np.unravel_index(int(np.argmax(acc)), dims)
+        d = np.abs(f - (np.array(best) + base + 0.5))  # distance from the fullest cell's centre, in cells
         if n_rot:
-            cells[:, 3] %= n_rot
-        np.add.at(acc, np.ravel_multi_index(cells.T, dims), 1)
-    best = np.unravel_index(int(np.argmax(acc)), dims)
-    d = np.abs(f - (np.array(best) + base + 0.5))  # distance from the fullest cell's centre, in cells
-    if n_rot:
-        d[:, 3] = np.minimum(d[:, 3] % n_rot, n_rot - d[:, 3] % n_rot)
-    agree = np.all(d <= 1.0, axis=1)
-    if agree.sum() < min_votes:
-        return None
-    pairs = Correspondences(
-        xy_q[q[agree]].astype(np.float64),
-        lib.pts3d[t[agree]].astype(np.float64),
-        lib.view_ids[t[agree]].astype(np.int32),
-        tuple(np.unique(lib.view_ids[t[agree]]).tolist()),
-        int(agree.sum()),
-    )
-    centre = (float(np.median(c[agree, 0])), float(np.median(c[agree, 1])))
-    return Location(centre, float(np.median(size[agree])), int(agree.sum()), pairs)
+            d[:, 3] = np.minimum(d[:, 3] % n_rot, n_rot - d[:, 3] % n_rot)
+        agree = left & np.all(d <= 1.0, axis=1)
+        if agree.sum() < min_votes:
+            break
+        left &= ~agree
+        pairs = Correspondences(
+            xy_q[q[agree]].astype(np.float64),
+            lib.pts3d[t[agree]].astype(np.float64),
+            lib.view_ids[t[agree]].astype(np.int32),
+            tuple(np.unique(lib.view_ids[t[agree]]).tolist()),
+            int(agree.sum()),
+        )
+        centre = (float(np.median(c[agree, 0])), float(np.median(c[agree, 1])))
+        found.append(Location(centre, float(np.median(size[agree])), int(agree.sum()), pairs))
+    return found

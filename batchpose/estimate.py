@@ -235,7 +235,8 @@ class PoseEstimator:
                 passes.insert(0, fine)
             if conf.fine.locate and conf.match.roi == "none" and self._weak(name, res, camera):
                 # The whole-frame pose is weak: search again where the keypoints' votes put the object.
-                found = locate(
+                searched = [] if box is None else [box]
+                for found in locate(
                     xy_q,
                     shapes_q,
                     desc_q,
@@ -247,9 +248,12 @@ class PoseEstimator:
                     ratio=conf.fine.locate_ratio,
                     angle_bin_deg=conf.fine.locate_angle_deg,
                     min_votes=conf.fine.locate_votes,
-                )
-                hough = None if found is None else _box_around(found.centre_xy, found.size_px, conf.fine, camera)
-                if hough is not None and (box is None or _overlap(hough, box) < 0.5):
+                    peaks=conf.fine.locate_peaks,
+                ):
+                    hough = _box_around(found.centre_xy, found.size_px, conf.fine, camera)
+                    if hough is None or any(_overlap(hough, b) >= 0.5 for b in searched):
+                        continue
+                    searched.append(hough)
                     located = self._fine_pass(
                         name, gray, hough, camera, found.pairs if conf.fine.locate_pairs else None
                     )

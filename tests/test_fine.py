@@ -158,8 +158,9 @@ def test_locate_finds_the_object_centre_and_size(cracker_model, cracker_library,
     for _ in range(5):
         T = random_pose(rng, cracker_model.center_m)
         xy, desc, shapes = detect_shapes(to_gray(compose(rng, cracker_model, T)), conf.features)
-        found = locate(xy, shapes, desc, index, cracker_library, conf.match, 640, 480, angle_bin_deg=angle_bin_deg)
-        assert found is not None
+        located = locate(xy, shapes, desc, index, cracker_library, conf.match, 640, 480, angle_bin_deg=angle_bin_deg)
+        assert len(located) == 1
+        found = located[0]
         (cx, cy), size, votes = found.centre_xy, found.size_px, found.votes
         # The agreeing votes are 2D-3D pairs, most of them right.
         assert len(found.pairs) == votes
@@ -173,4 +174,13 @@ def test_locate_finds_the_object_centre_and_size(cracker_model, cracker_library,
         hits += np.hypot(cx - u, cy - v) < 0.2 * d_px and 0.7 < size / d_px < 1.4
     assert hits >= 4, hits
     # Too few frame keypoints: no location.
-    assert locate(xy[:0], shapes[:0], desc[:0], index, cracker_library, conf.match, 640, 480) is None
+    assert locate(xy[:0], shapes[:0], desc[:0], index, cracker_library, conf.match, 640, 480) == []
+
+
+def test_locate_config_is_checked():
+    from batchpose.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="fine.locate_ratio must be in"):
+        load_estimator_config({"fine": {"locate_ratio": 1.5}})
+    with pytest.raises(ConfigError, match="fine.locate_peaks and fine.locate_votes must be >= 1"):
+        load_estimator_config({"fine": {"locate_peaks": 0}})
