@@ -68,7 +68,9 @@ class FeatureConfig:
 
     n_features: int = 0
     """Keep at most this many keypoints per image (0: all)."""
-    contrast_threshold: float = 0.04
+    contrast_threshold: float = 0.02
+    """SIFT's contrast threshold: half OpenCV's 0.04, for more keypoints on dim, blurred or small objects
+    (the ``paper`` and ``fast`` pipelines keep 0.04; reports/ACCURACY.md has both)."""
     edge_threshold: float = 10.0
     sigma: float = 1.6
     root_sift: bool = False
