@@ -188,9 +188,10 @@ class FineConfig:
     """Without a coarse pose: the box is that of the matched keypoints near the densest of them, within
     twice this radius."""
     locate: bool = True
-    """When the whole-frame pose is weak, also run the fine pass where the frame's keypoints vote the
-    object to be (:func:`batchpose.correspondences.locate`: each match predicts the object's centre and
-    size from its keypoints' sizes and angles); the pass with the most inliers wins. A small object in
+    """When the best pose so far (the whole frame's, or the coarse box's fine pass's) is weak, also run
+    the fine pass where the frame's keypoints vote the object to be
+    (:func:`batchpose.correspondences.locate`: each match predicts the object's centre, size and in-plane
+    rotation from its keypoint's scale and angle); the pass with the most support wins. A small object in
     clutter often loses the whole-frame pass to a handful of chance matches elsewhere."""
     locate_below: float = 0.5
     """"Weak": no pose, an implausible one, or confidence below this."""

@@ -233,8 +233,8 @@ class PoseEstimator:
             fine = None if box is None else self._fine_pass(name, gray, box, camera)
             if fine is not None:
                 passes.insert(0, fine)
-            if conf.fine.locate and conf.match.roi == "none" and self._weak(name, res, camera):
-                # The whole-frame pose is weak: search again where the keypoints' votes put the object.
+            if conf.fine.locate and conf.match.roi == "none" and self._weak(name, self._best(passes)[0], camera):
+                # The pose so far is weak: search again where the keypoints' votes put the object.
                 searched = [] if box is None else [box]
                 for found in locate(
                     xy_q,
@@ -260,8 +260,7 @@ class PoseEstimator:
                     if located is not None:
                         passes.insert(0, located)
             timings["fine"] = time.perf_counter() - t0
-        # The base result: the pass with the most support (the fine pass on ties).
-        res, corr, xy_k, desc_k = max(passes, key=lambda p: p[0].support(conf.support_px) if p[0] else -1)
+        res, corr, xy_k, desc_k = self._best(passes)
         rec.n_matches = len(corr)
         rec.templates = corr.templates
         x_used = corr.x
@@ -356,6 +355,10 @@ class PoseEstimator:
         if x1 - x0 < 16 or y1 - y0 < 16:
             return None
         return int(x0), int(y0), int(x1), int(y1)
+
+    def _best(self, passes: list) -> tuple:
+        """The pass with the most support (the earliest, i.e. the latest fine pass, on ties)."""
+        return max(passes, key=lambda p: p[0].support(self.conf.support_px) if p[0] else -1)
 
     def _weak(self, name: str, res, camera: Camera) -> bool:
         """True when the whole-frame pass found no pose, an implausible one or one below
