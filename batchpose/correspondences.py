@@ -112,6 +112,23 @@ def _select_top_k(
     )
 
 
+def nearest_with_rival(desc_q: np.ndarray, lib_index, lib: TemplateLibrary, conf: MatchConfig, k: int = 4):
+    """Each frame descriptor's ``k`` nearest template descriptors and its rival: the distance to the
+    nearest of them whose 3D point lies farther than ``conf.distinct_3d_m`` from the best one's (inf when
+    none does), so a second view of the same surface point is not a rival.
+
+    Returns:
+        idx, dist: (M, min(k, library size)) nearest template descriptor indices and distances;
+        rival: (M,) the rival distance.
+    """
+    idx, dist = knn(lib_index, desc_q, min(k, len(lib.desc)), conf)
+    p = lib.pts3d[idx]
+    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
+    far[:, 0] = False
+    rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
+    return idx, dist, rival
+
+
 def vote_views(
     desc_q: np.ndarray, lib_index, lib: TemplateLibrary, n_views: int, conf: MatchConfig, mask=None
 ) -> np.ndarray:
@@ -126,12 +143,7 @@ def vote_views(
     q = desc_q if mask is None else desc_q[mask]
     if lib_index is None or len(q) == 0:
         return np.arange(min(n_views, lib.n_views))
-    k = min(4, len(lib.desc))
-    idx, dist = knn(lib_index, q, k, conf)
-    p = lib.pts3d[idx]
-    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
-    far[:, 0] = False
-    rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
+    idx, dist, rival = nearest_with_rival(q, lib_index, lib, conf)
     ok = dist[:, 0] < conf.prefilter_ratio * rival
     votes = np.bincount(lib.view_ids[idx[ok, 0]], minlength=lib.n_views)
     return np.argsort(-votes, kind="stable")[:n_views]
@@ -174,13 +186,7 @@ def match_query_to_template(
     """
     if lib_index is None or len(desc_q) == 0:
         return _select_top_k(np.zeros(0, int), np.zeros(0, int), np.zeros(0), lib, xy_q, conf.top_k_templates)
-    k = min(k, len(lib.desc))
-    idx, dist = knn(lib_index, desc_q, k, conf)
-    p = lib.pts3d[idx]  # (M, k, 3)
-    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
-    far[:, 0] = False
-    has_rival = far.any(axis=1)
-    rival = np.where(has_rival, dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
+    idx, dist, rival = nearest_with_rival(desc_q, lib_index, lib, conf, k)
     ok = dist[:, 0] < conf.ratio * rival
     q_idx = np.nonzero(ok)[0]
     return _select_top_k(q_idx, idx[q_idx, 0], dist[q_idx, 0], lib, xy_q, conf.top_k_templates)
@@ -219,12 +225,7 @@ def locate(
     """
     if lib_index is None or len(desc_q) == 0 or len(lib.shapes) != len(lib.desc):
         return []
-    k = min(4, len(lib.desc))
-    idx, dist = knn(lib_index, desc_q, k, conf)
-    p = lib.pts3d[idx]
-    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
-    far[:, 0] = False
-    rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
+    idx, dist, rival = nearest_with_rival(desc_q, lib_index, lib, conf)
     q = np.nonzero(dist[:, 0] < ratio * rival)[0]
     if len(q) < min_votes:
         return []

@@ -72,15 +72,16 @@ def fine_keypoints(gray: np.ndarray, box: tuple[int, int, int, int], conf: Estim
     return xy.astype(np.float32), desc
 
 
-def _box_around(centre, size_px: float, fc, camera: Camera) -> tuple[int, int, int, int] | None:
-    """A square box of side ``size_px`` (the object's diameter) around ``centre``, grown by the fine
-    margins and clipped to the image; None when under 16 px."""
-    half = 0.5 * size_px * (1.0 + 2.0 * fc.margin) + fc.margin_px
-    x0, y0 = max(int(np.floor(centre[0] - half)), 0), max(int(np.floor(centre[1] - half)), 0)
-    x1, y1 = min(int(np.ceil(centre[0] + half)), camera.width), min(int(np.ceil(centre[1] + half)), camera.height)
+def _grown_box(lo, hi, fc, camera: Camera) -> tuple[int, int, int, int] | None:
+    """The box from ``lo`` to ``hi`` (x, y), grown by the fine margins and clipped to the image; None when
+    under 16 px."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    grow = fc.margin * (hi - lo) + fc.margin_px
+    x0, y0 = np.floor(np.maximum(lo - grow, 0)).astype(int)
+    x1, y1 = np.ceil(np.minimum(hi + grow, [camera.width, camera.height])).astype(int)
     if x1 - x0 < 16 or y1 - y0 < 16:
         return None
-    return x0, y0, x1, y1
+    return int(x0), int(y0), int(x1), int(y1)
 
 
 def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> float:
@@ -250,7 +251,8 @@ class PoseEstimator:
                     min_votes=conf.fine.locate_votes,
                     peaks=conf.fine.locate_peaks,
                 ):
-                    hough = _box_around(found.centre_xy, found.size_px, conf.fine, camera)
+                    c, half = np.asarray(found.centre_xy), 0.5 * found.size_px  # a square of the object's diameter
+                    hough = _grown_box(c - half, c + half, conf.fine, camera)
                     if hough is None or any(_overlap(hough, b) >= 0.5 for b in searched):
                         continue
                     searched.append(hough)
@@ -348,20 +350,14 @@ class PoseEstimator:
             d = np.linalg.norm(corr.x[:, None] - corr.x[None], axis=2)
             centre = corr.x[np.argmax((d < fc.cluster_radius_px).sum(axis=1))]
             pts = corr.x[np.linalg.norm(corr.x - centre, axis=1) < 2 * fc.cluster_radius_px]
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        grow = fc.margin * (hi - lo) + fc.margin_px
-        x0, y0 = np.floor(np.maximum(lo - grow, 0)).astype(int)
-        x1, y1 = np.ceil(np.minimum(hi + grow, [camera.width, camera.height])).astype(int)
-        if x1 - x0 < 16 or y1 - y0 < 16:
-            return None
-        return int(x0), int(y0), int(x1), int(y1)
+        return _grown_box(pts.min(axis=0), pts.max(axis=0), fc, camera)
 
     def _best(self, passes: list) -> tuple:
         """The pass with the most support (the earliest, i.e. the latest fine pass, on ties)."""
         return max(passes, key=lambda p: p[0].support(self.conf.support_px) if p[0] else -1)
 
     def _weak(self, name: str, res, camera: Camera) -> bool:
-        """True when the whole-frame pass found no pose, an implausible one or one below
+        """True when ``res`` (the best pass so far) is no pose, an implausible one or one below
         ``fine.locate_below`` confidence."""
         if res is None or res.status != "ok" or self._implausible(name, res.cam_from_model, camera):
             return True
