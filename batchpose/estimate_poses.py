@@ -10,6 +10,7 @@ trees are seeded per frame.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from collections import Counter
 from pathlib import Path
@@ -62,6 +63,30 @@ def _relax_loky_leak_check() -> None:
     process_executor._MAX_MEMORY_LEAK_SIZE = max(process_executor._MAX_MEMORY_LEAK_SIZE, int(1.5e9))
 
 
+def limit_threads(threads: int | None) -> None:
+    """Let this worker's OpenCV and software renderer use ``threads`` threads (None: their defaults).
+
+    Both start one thread per core in every process, so two workers on two cores would run four of each
+    and fight over the cores; joblib caps only OpenMP/BLAS pools, and OpenCV's wheels use pthreads.
+    ``LP_NUM_THREADS`` (llvmpipe) is read when a GL context is made, so it is set before the first render.
+    """
+    if threads is None or _WORKER.get("threads") == threads:
+        return
+    import cv2  # noqa: PLC0415
+
+    cv2.setNumThreads(threads)
+    os.environ["LP_NUM_THREADS"] = str(threads)
+    _WORKER["threads"] = threads
+
+
+def threads_per_worker(jobs: int) -> int | None:
+    """Threads each of ``jobs`` workers on this machine gets (None for one worker: use every core)."""
+    if jobs <= 1:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores // jobs)
+
+
 def estimate_chunk(
     frames: list[Frame],
     targets: list[list[str]],
@@ -69,9 +94,11 @@ def estimate_chunk(
     lib_dirs: dict[str, str],
     obj_ids: dict[str, int],
     mesh_paths: dict[str, str],
+    threads: int | None = None,
 ) -> list[dict]:
     """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows."""
     _relax_loky_leak_check()
+    limit_threads(threads)
     est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
     est.reset_tracks()  # a track never crosses tasks: results do not depend on how tasks meet workers
     rows = []
@@ -126,6 +153,7 @@ def main(
     limit: int | None = None,
     chunk_size: int = 2,
     max_pairs: int | None = None,
+    threads: int | None = None,
 ) -> Path:
     """Estimate poses for all frames of ``source``; returns ``run_dir/poses.parquet``.
 
@@ -136,6 +164,7 @@ def main(
         targets_mode: "annotations" or "all" (see :mod:`batchpose.manifest`).
         backend: joblib backend ("loky", or "dask" inside a ``dask.distributed`` client context).
         max_pairs: stop after about this many newly estimated pairs (used to test resuming).
+        threads: OpenCV / renderer threads per worker (see :func:`limit_threads`; None: their defaults).
     """
     run_dir = Path(run_dir)
     out = run_dir / "poses.parquet"
@@ -163,7 +192,7 @@ def main(
     t0 = time.perf_counter()
     new_pairs = 0
     tasks = (
-        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs)
+        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs, threads)
         for f, t in _chunks(source, objects, targets_mode, done, chunk_size, limit)
     )
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)

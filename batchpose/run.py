@@ -176,6 +176,8 @@ def main(
             overwrite=overwrite,
             limit=limit,
             max_pairs=max_pairs,
+            # workers on this machine share its cores; a remote cluster's workers keep their defaults
+            threads=None if scheduler else estimate_poses.threads_per_worker(jobs),
         )
     if max_pairs is not None and poses_path.name != "poses.parquet":
         return run_dir  # stopped early on purpose (resume tests)

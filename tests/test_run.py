@@ -224,3 +224,19 @@ def test_killed_run_resumes_without_redoing_work(demo_run, tmp_path, cache_dir):
     assert f"Resuming: {done} (frame, object) pairs already estimated" in r.stderr
     assert not list((out / "shards").glob("*.tmp"))
     pd.testing.assert_frame_equal(_csv(out / "poses.csv"), _csv(demo_run / "poses.csv"))
+
+
+def test_workers_share_the_cores_instead_of_each_taking_all():
+    # Two workers on N cores get N // 2 OpenCV and renderer threads each; one worker keeps the defaults.
+    code = (
+        "import os, cv2\n"
+        "from batchpose import estimate_poses as e\n"
+        "cores = len(os.sched_getaffinity(0))\n"
+        "assert e.threads_per_worker(1) is None\n"
+        "assert e.threads_per_worker(2) == max(1, cores // 2), e.threads_per_worker(2)\n"
+        "assert e.threads_per_worker(4 * cores) == 1\n"
+        "e.limit_threads(1)\n"
+        "print(cv2.getNumThreads(), os.environ['LP_NUM_THREADS'])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.split() == ["1", "1"]
