@@ -182,8 +182,6 @@ class FineConfig:
     prefilter_views: int = 32
     """Views tested inside the box, chosen by the crop's keypoints' votes as in ``match.prefilter_views``
     (0: every view, which costs about twice the time for no measured gain on ycbv_dev)."""
-    skip_inliers: int = 0
-    """Skip the fine pass when the whole-frame pass already has at least this many inliers (0: never)."""
     cluster_radius_px: float = 48.0
     """Without a coarse pose: the box is that of the matched keypoints near the densest of them, within
     twice this radius."""
@@ -289,6 +287,11 @@ class EstimatorConfig:
     """Poses from different passes and refinement hypotheses are compared by their support: the pairs they
     reproject within this many pixels (0: GNC's inlier count, which a wrong pose gathering loose pairs at
     5-8 px can win)."""
+    strong_inliers: int = 60
+    """A whole-frame pass with at least this many inliers (and a plausible pose) has found the object: no
+    fine pass, no locator, and the refinement refines that pose only (no per-template hypotheses, no
+    turned copies). A full estimate then costs ~25 % less at equal accuracy (reports/BENCHMARKS.md).
+    0: never."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -403,6 +406,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
     ):
         if not ok:
             raise ConfigError(f"{where}: track.{key} must {need}, got {getattr(tc, key)}")
+    if conf.strong_inliers < 0:
+        raise ConfigError(f"{where}: strong_inliers must be >= 0, got {conf.strong_inliers}")
     if not 0 < conf.gnc.gamma < 1:
         raise ConfigError(f"{where}: gnc.gamma must be in (0, 1), got {conf.gnc.gamma}")
     return conf

@@ -227,7 +227,7 @@ class PoseEstimator:
         timings["match"] = time.perf_counter() - t0
         res = self._solve(name, corr, camera, timings)
         passes = [(res, corr, xy_q, desc_q)]
-        strong = res is not None and res.status == "ok" and 0 < conf.fine.skip_inliers <= res.n_inliers
+        strong = self._strong(name, res, camera)
         if conf.fine.enabled and not strong:
             t0 = time.perf_counter()
             box = self._object_box(name, res, corr, camera, gt_pose)
@@ -268,7 +268,7 @@ class PoseEstimator:
         x_used = corr.x
         if self._can_refine(name):
             t0 = time.perf_counter()
-            refined = self._refine(name, passes, camera, xy_k, desc_k)
+            refined = self._refine(name, passes, camera, xy_k, desc_k, strong)
             timings["refine"] = time.perf_counter() - t0
             if refined is not None:
                 res, x_used = refined.result, refined.x
@@ -356,6 +356,13 @@ class PoseEstimator:
         """The pass with the most support (the earliest, i.e. the latest fine pass, on ties)."""
         return max(passes, key=lambda p: p[0].support(self.conf.support_px) if p[0] else -1)
 
+    def _strong(self, name: str, res, camera: Camera) -> bool:
+        """True when ``res`` has at least ``strong_inliers`` inliers at a plausible pose."""
+        n = self.conf.strong_inliers
+        if res is None or res.status != "ok" or not 0 < n <= res.n_inliers:
+            return False
+        return not self._implausible(name, res.cam_from_model, camera)
+
     def _weak(self, name: str, res, camera: Camera) -> bool:
         """True when ``res`` (the best pass so far) is no pose, an implausible one or one below
         ``fine.locate_below`` confidence."""
@@ -390,12 +397,13 @@ class PoseEstimator:
     def _can_refine(self, name: str) -> bool:
         return self.conf.refine.enabled and self.renderer is not None and name in self.models
 
-    def _refine(self, name, passes, camera: Camera, xy_q, desc_q):
+    def _refine(self, name, passes, camera: Camera, xy_q, desc_q, strong: bool = False):
         """Refine the passes' poses (and, with ``refine.hypotheses`` > 1, per-template poses); best guided score.
 
         Args:
             passes: (result, pairs, ...) of the coarse and fine passes, best first.
             xy_q, desc_q: the keypoints guided matching uses.
+            strong: the best pass has found the object (:meth:`_strong`): refine its pose only.
         """
         conf = self.conf
 
@@ -403,8 +411,8 @@ class PoseEstimator:
             return self._render(name, T, camera)
 
         ok = [p[0] for p in passes if p[0] is not None and p[0].status == "ok"]
-        starts = [r.cam_from_model for r in ok][: conf.refine.hypotheses]
-        for _res, corr, *_ in passes:
+        starts = [r.cam_from_model for r in ok][: 1 if strong else conf.refine.hypotheses]
+        for _res, corr, *_ in [] if strong else passes:
             for v in corr.templates:
                 if len(starts) >= conf.refine.hypotheses:
                     break
@@ -445,7 +453,7 @@ class PoseEstimator:
             if r is not None and (best is None or r.score > best.score):
                 best = r
         best = finish(best)
-        if best is not None and conf.refine.flips:
+        if best is not None and conf.refine.flips and not strong:
             # A turned hypothesis starts up to ~20 degrees off, so one that finds a third of the best score in
             # its first round gets the remaining rounds before it is compared.
             base = best.result.cam_from_model

@@ -67,20 +67,22 @@ def test_fine_keypoints_land_on_the_same_pixels(cracker_model):
     assert np.median(d) < 0.5, np.median(d)
 
 
-@pytest.mark.parametrize("skip_inliers", [0, 20, 100000])
-def test_fine_pass_is_skipped_after_a_strong_coarse_pass(cracker_model, cracker_library, skip_inliers):
-    """fine.skip_inliers: a sharp synthetic frame gives the whole-frame pass far more than 20 inliers, so
-    with 20 the fine pass does not run; with 0 (off) or an unreachable count it does; the pose is right."""
+@pytest.mark.parametrize("strong_inliers", [0, 20, 100000])
+def test_fine_pass_is_skipped_after_a_strong_coarse_pass(cracker_model, cracker_library, strong_inliers):
+    """strong_inliers: a sharp synthetic frame gives the whole-frame pass far more than 20 inliers, so
+    with 20 the fine pass does not run (and only that pose is refined); with 0 (off) or an unreachable
+    count it does; the pose is right either way."""
     rng = np.random.default_rng(8)
     T = random_pose(rng, cracker_model.center_m)
     img = compose(rng, cracker_model, T)
-    conf = dataclasses.replace(EstimatorConfig(), fine=FineConfig(skip_inliers=skip_inliers))
+    conf = dataclasses.replace(EstimatorConfig(), strong_inliers=strong_inliers)
     est = PoseEstimator(
         conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
     )
     rec = est.estimate_image(img, Camera(K_SYN, 640, 480), [cracker_model.name])[0]
     assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
-    assert ("fine" in rec.timings) == (skip_inliers != 20)
+    assert np.linalg.norm(rec.cam_from_model[:3, 3] - T[:3, 3]) < 0.01
+    assert ("fine" in rec.timings) == (strong_inliers != 20)
 
 
 @pytest.mark.parametrize("flips", [True, False])
@@ -114,7 +116,7 @@ def test_every_bundled_pipeline_loads(name):
         assert not conf.fine.enabled
     if name == "gnc_pose":
         assert conf.fine.enabled and conf.refine.flips and conf.match.roi == "none"
-        assert conf.track.enabled and conf.fine.skip_inliers == 0
+        assert conf.track.enabled and conf.strong_inliers > 0
     if name in ("paper", "oracle_roi", "tp_ub"):
         assert not conf.track.enabled or conf.match.roi == "gt_box" or conf.method == "tp_ub"
 
