@@ -124,6 +124,7 @@ class PoseEstimator:
         self._flip_cache: dict[str, list[np.ndarray]] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._tracks: dict[str, Track] = {}
+        self._lost: dict[str, int] = {}
         self._prev: dict | None = None
 
     # -- per-object caches -------------------------------------------------------------------------
@@ -145,6 +146,7 @@ class PoseEstimator:
         obj_names: list[str],
         gt: tuple[ObjectPose, ...] = (),
         frame_id: str = "image",
+        quick: frozenset[str] = frozenset(),
     ) -> list[PoseRecord]:
         """Estimate every object in ``obj_names`` in one RGB image.
 
@@ -153,6 +155,8 @@ class PoseEstimator:
             camera: calibration of this image.
             obj_names: objects to look for (each must have a library).
             gt: ground-truth poses, used only by the ``match.roi: gt_box`` oracle and ``method: tp_ub``.
+            quick: objects estimated as if the whole-frame pass were strong (no fine pass or locator, one
+                refinement hypothesis): tracking's cheaper retry for an object that stays lost.
 
         Raises:
             ImageError / CameraError: the image or calibration is unusable.
@@ -173,7 +177,7 @@ class PoseEstimator:
         records = []
         for name in obj_names:
             rec = self._estimate_object(
-                name, gray, (xy_q, desc_q, shapes_q), query_index, camera, gt_by_name.get(name), frame_id
+                name, gray, (xy_q, desc_q, shapes_q), query_index, camera, gt_by_name.get(name), frame_id, name in quick
             )
             rec.timings["sift"] = t_sift
             records.append(rec)
@@ -214,6 +218,7 @@ class PoseEstimator:
         camera: Camera,
         gt_pose: np.ndarray | None,
         frame_id: str,
+        quick: bool = False,
     ) -> PoseRecord:
         conf = self.conf
         if conf.method == "tp_ub":
@@ -227,7 +232,7 @@ class PoseEstimator:
         timings["match"] = time.perf_counter() - t0
         res = self._solve(name, corr, camera, timings)
         passes = [(res, corr, xy_q, desc_q)]
-        strong = self._strong(name, res, camera)
+        strong = quick or self._strong(name, res, camera)
         if conf.fine.enabled and not strong:
             t0 = time.perf_counter()
             box = self._object_box(name, res, corr, camera, gt_pose)
@@ -483,6 +488,7 @@ class PoseEstimator:
     def reset_tracks(self) -> None:
         """Forget every track: the next frame is estimated afresh (a worker does this at each task)."""
         self._tracks = {}
+        self._lost = {}
         self._prev = None
 
     def tracking(self) -> bool:
@@ -556,8 +562,10 @@ class PoseEstimator:
         gray = to_gray(rgb)
         t_gray = time.perf_counter() - t0
         prev = self._prev
-        tracks = self._tracks if self._follows(frame) else {}
-        self._tracks, self._prev = {}, None  # rebuilt below; stays empty if this frame fails
+        follows = self._follows(frame)
+        tracks = self._tracks if follows else {}
+        lost = self._lost if follows else {}
+        self._tracks, self._lost, self._prev = {}, {}, None  # rebuilt below; stay empty if this frame fails
         out: dict[str, PoseRecord] = {}
         for name in obj_names:
             tr = tracks.get(name)
@@ -597,7 +605,10 @@ class PoseEstimator:
                 tracked=True,
             )
         rest = [n for n in obj_names if n not in out]
-        for rec in self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id) if rest else []:
+        # An object still lost since the previous frame gets the full estimate only every
+        # ``lost_full_every``-th frame, a quick one in between.
+        quick = frozenset(n for n in rest if lost.get(n, 0) % max(tc.lost_full_every, 1))
+        for rec in self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick) if rest else []:
             out[rec.obj_name] = rec
             if rec.ok and rec.confidence >= tc.min_confidence:
                 t0 = time.perf_counter()
@@ -605,6 +616,8 @@ class PoseEstimator:
                 rec.timings["seed"] = time.perf_counter() - t0
                 if tr is not None:
                     self._tracks[rec.obj_name] = tr
+            if rec.obj_name not in self._tracks:
+                self._lost[rec.obj_name] = lost.get(rec.obj_name, 0) + 1
         self._prev = {
             "gray": gray,
             "scene_id": frame.scene_id,

@@ -232,6 +232,10 @@ def test_track_config_is_checked():
         load_estimator_config({"track": {"min_points": 2}})
     with pytest.raises(ConfigError, match="unknown key pointz"):
         load_estimator_config({"track": {"pointz": 2}})
+    with pytest.raises(ConfigError, match="track.lost_full_every must be >= 1"):
+        load_estimator_config({"track": {"lost_full_every": 0}})
+    with pytest.raises(ConfigError, match="strong_inliers must be >= 0"):
+        load_estimator_config({"strong_inliers": -1})
 
 
 def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
@@ -296,3 +300,21 @@ def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, c
         pd.testing.assert_frame_equal(other[0], flags)
         np.testing.assert_allclose(other[1], R, atol=1e-9)
         np.testing.assert_allclose(other[2], t, atol=1e-9)
+
+
+@pytest.mark.parametrize("lost_full_every", [4, 1])
+def test_an_object_that_stays_lost_gets_quick_estimates_between_full_ones(
+    cracker_model, cracker_library, clip, lost_full_every
+):
+    """Six frames of background without the box, then the box: while it stays lost only every 4th frame
+    gets the full estimate (its fine pass), the others the quick one; it is found and tracked when it
+    shows. With track.lost_full_every = 1 every frame gets the full estimate."""
+    bg = textured_background(np.random.default_rng(5))
+    frames = [frame_of(bg, i) for i in range(6)] + [frame_of(clip[j][0], 6 + j) for j in range(3)]
+    est = make_estimator(cracker_model, cracker_library, lost_full_every=lost_full_every)
+    recs = run_clip(est, frames, cracker_model.name)
+    full = [("fine" in r.timings) for r in recs[:6]]
+    assert full == ([True, False, False, False, True, False] if lost_full_every == 4 else [True] * 6)
+    assert [r.ok for r in recs[6:]] == [True] * 3 and [r.tracked for r in recs[6:]] == [False, True, True]
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    assert add_error(recs[6].cam_from_model, clip[0][1], pts) < 0.02 * cracker_model.diameter_m
