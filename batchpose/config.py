@@ -98,6 +98,10 @@ class MatchConfig:
     32 views halve the time per pair with no accuracy change beyond run-to-run noise."""
     prefilter_ratio: float = 0.9
     """Loose ratio test a frame keypoint must pass to vote for a view (see ``prefilter_views``)."""
+    first_views: int = 8
+    """Whole-frame pass with ``prefilter_views``: test the keypoints of this many most-voted views first and
+    the other views' only when those do not give a strong pose (``strong_inliers``); the pairs are then
+    exactly those of all ``prefilter_views`` views. A strong object is matched ~4x faster (0: off)."""
     """Keep the pairs of the k templates with the most surviving matches."""
     flann_trees: int = 4
     flann_checks: int = 32

@@ -149,6 +149,34 @@ def vote_views(
     return np.argsort(-votes, kind="stable")[:n_views]
 
 
+def template_to_query_candidates(
+    query_index, lib: TemplateLibrary, conf: MatchConfig, candidate_mask=None, views: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The template keypoints (of ``views``, default all) that pass the ratio test into the frame's.
+
+    Each template keypoint is tested on its own, so the candidates of several view sets concatenate to
+    those of their union.
+
+    Returns:
+        q_idx, t_idx, dist: (N,) frame keypoint, template keypoint and descriptor distance of each pair.
+    """
+    if query_index is None or len(lib.desc) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    rows = np.arange(len(lib.desc)) if views is None else np.nonzero(np.isin(lib.view_ids, views))[0]
+    idx, dist = knn(query_index, lib.desc[rows], 2, conf)
+    ok = dist[:, 0] < conf.ratio * dist[:, 1]
+    if candidate_mask is not None:
+        ok &= candidate_mask[idx[:, 0]]
+    keep = np.nonzero(ok)[0]
+    return idx[keep, 0], rows[keep], dist[keep, 0]
+
+
+def top_k_pairs(candidates, lib: TemplateLibrary, xy_q: np.ndarray, conf: MatchConfig) -> Correspondences:
+    """The pairs of the ``conf.top_k_templates`` views with most candidates (see :func:`_select_top_k`)."""
+    q_idx, t_idx, dist = candidates
+    return _select_top_k(q_idx, t_idx, dist, lib, xy_q, conf.top_k_templates)
+
+
 def match_template_to_query(
     xy_q: np.ndarray,
     query_index,
@@ -164,16 +192,7 @@ def match_template_to_query(
         candidate_mask: optional (M,) bool; matches to frame keypoints outside it are dropped (ROI).
         views: optional view ids whose keypoints are tested (see :func:`vote_views`).
     """
-    if query_index is None or len(lib.desc) == 0:
-        return _select_top_k(np.zeros(0, int), np.zeros(0, int), np.zeros(0), lib, xy_q, conf.top_k_templates)
-    rows = np.arange(len(lib.desc)) if views is None else np.nonzero(np.isin(lib.view_ids, views))[0]
-    idx, dist = knn(query_index, lib.desc[rows], 2, conf)
-    ok = dist[:, 0] < conf.ratio * dist[:, 1]
-    if candidate_mask is not None:
-        ok &= candidate_mask[idx[:, 0]]
-    keep = np.nonzero(ok)[0]
-    idx, dist, t_idx = idx[keep], dist[keep], rows[keep]
-    return _select_top_k(idx[:, 0], t_idx, dist[:, 0], lib, xy_q, conf.top_k_templates)
+    return top_k_pairs(template_to_query_candidates(query_index, lib, conf, candidate_mask, views), lib, xy_q, conf)
 
 
 def match_query_to_template(

@@ -20,6 +20,8 @@ from batchpose.correspondences import (
     locate,
     match_query_to_template,
     match_template_to_query,
+    template_to_query_candidates,
+    top_k_pairs,
     vote_views,
 )
 from batchpose.errors import BatchposeError, ImageError
@@ -226,11 +228,8 @@ class PoseEstimator:
         xy_q, desc_q, shapes_q = keypoints
         timings: dict[str, float] = {}
         rec = PoseRecord(frame_id, name, "ok", obj_id=self.obj_ids.get(name, 0), timings=timings)
-        t0 = time.perf_counter()
         roi = self._roi_mask(xy_q, camera, gt_pose, name)
-        corr = self._match(name, xy_q, desc_q, query_index, roi, conf.match.prefilter_views)
-        timings["match"] = time.perf_counter() - t0
-        res = self._solve(name, corr, camera, timings)
+        res, corr = self._coarse(name, xy_q, desc_q, query_index, roi, camera, timings)
         passes = [(res, corr, xy_q, desc_q)]
         strong = quick or self._strong(name, res, camera)
         if conf.fine.enabled and not strong:
@@ -303,6 +302,30 @@ class PoseEstimator:
             return match_template_to_query(xy_q, query_index, lib, conf.match, candidate_mask=roi, views=views)
         sel = np.ones(len(xy_q), bool) if roi is None else roi
         return match_query_to_template(xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match)
+
+    def _coarse(self, name, xy_q, desc_q, query_index, roi, camera: Camera, timings: dict[str, float]):
+        """The whole-frame pass: (result, pairs). With ``match.first_views``, the most-voted views are
+        matched first and the rest only when they give no strong pose."""
+        conf, lib = self.conf, self.libraries[name]
+        first, n_views = conf.match.first_views, conf.match.prefilter_views
+        t0 = time.perf_counter()
+        staged = conf.match.direction == "template_to_query" and 0 < first < n_views < lib.n_views
+        if not staged:
+            corr = self._match(name, xy_q, desc_q, query_index, roi, n_views)
+            timings["match"] = time.perf_counter() - t0
+            return self._solve(name, corr, camera, timings), corr
+        views = vote_views(desc_q, self._library_index(name), lib, n_views, conf.match, roi)
+        cand = template_to_query_candidates(query_index, lib, conf.match, roi, views[:first])
+        corr = top_k_pairs(cand, lib, xy_q, conf.match)
+        timings["match"] = time.perf_counter() - t0
+        res = self._solve(name, corr, camera, timings)
+        if self._strong(name, res, camera):
+            return res, corr
+        t0 = time.perf_counter()
+        more = template_to_query_candidates(query_index, lib, conf.match, roi, views[first:])
+        corr = top_k_pairs(tuple(np.concatenate(p) for p in zip(cand, more, strict=True)), lib, xy_q, conf.match)
+        timings["match"] += time.perf_counter() - t0
+        return self._solve(name, corr, camera, timings), corr
 
     def _solve(self, name: str, corr: Correspondences, camera: Camera, timings: dict[str, float]):
         """Weights + RANSAC + GNC + LM on the pairs; None when there are too few pairs."""

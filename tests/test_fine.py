@@ -186,3 +186,52 @@ def test_locate_config_is_checked():
         load_estimator_config({"fine": {"locate_ratio": 1.5}})
     with pytest.raises(ConfigError, match="fine.locate_peaks and fine.locate_votes must be >= 1"):
         load_estimator_config({"fine": {"locate_peaks": 0}})
+
+
+def test_staged_view_matching_gives_the_pairs_of_all_views(cracker_model, cracker_library, monkeypatch):
+    """match.first_views: the candidates of the first 8 voted views plus those of the other 24 select
+    exactly the pairs that matching all 32 at once does; the estimator finds the pose either way and, on a
+    sharp frame (strong after 8 views), never matches the other 24."""
+    import batchpose.estimate as est_mod  # noqa: PLC0415
+    from batchpose.correspondences import (  # noqa: PLC0415
+        flann_index,
+        match_template_to_query,
+        template_to_query_candidates,
+        top_k_pairs,
+        vote_views,
+    )
+
+    rng = np.random.default_rng(8)
+    T = random_pose(rng, cracker_model.center_m)
+    img = compose(rng, cracker_model, T)
+    conf = EstimatorConfig()
+    xy_q, desc_q = detect(to_gray(img), conf.features)
+    lib, mc = cracker_library, conf.match
+    views = vote_views(desc_q, flann_index(lib.desc, mc), lib, 32, mc)
+    q_index = flann_index(desc_q, mc)
+    a = template_to_query_candidates(q_index, lib, mc, None, views[:8])
+    b = template_to_query_candidates(q_index, lib, mc, None, views[8:])
+    staged = top_k_pairs(tuple(np.concatenate(p) for p in zip(a, b, strict=True)), lib, xy_q, mc)
+    whole = match_template_to_query(xy_q, q_index, lib, mc, views=views)
+    assert len(whole) > 20 and staged.templates == whole.templates
+    np.testing.assert_array_equal(staged.x, whole.x)
+    np.testing.assert_array_equal(staged.X, whole.X)
+
+    tested: list[int] = []  # views per staged call the estimator makes
+
+    def spy(query_index, lib_, conf_, mask=None, views_=None):
+        tested.append(len(views_))
+        return template_to_query_candidates(query_index, lib_, conf_, mask, views_)
+
+    monkeypatch.setattr(est_mod, "template_to_query_candidates", spy)
+    for first in (8, 0):
+        tested.clear()
+        est = PoseEstimator(
+            dataclasses.replace(conf, match=dataclasses.replace(mc, first_views=first)),
+            {cracker_model.name: lib},
+            models={cracker_model.name: cracker_model},
+            renderer=get_renderer(),
+        )
+        rec = est.estimate_image(img, Camera(K_SYN, 640, 480), [cracker_model.name])[0]
+        assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
+        assert tested == ([8] if first else [])
