@@ -299,9 +299,9 @@ class EstimatorConfig:
     5-8 px can win)."""
     strong_inliers: int = 60
     """A whole-frame pass with at least this many inliers (and a plausible pose) has found the object: no
-    fine pass, no locator, and the refinement refines that pose only (no per-template hypotheses, no
-    turned copies). A full estimate then costs ~25 % less at equal accuracy (reports/BENCHMARKS.md).
-    0: never."""
+    fine pass, no locator, and the refinement refines that pose only, one round (no per-template
+    hypotheses, no turned copies). Such a full estimate costs about half as much at equal accuracy
+    (reports/BENCHMARKS.md). 0: never."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)

@@ -431,7 +431,7 @@ class PoseEstimator:
         Args:
             passes: (result, pairs, ...) of the coarse and fine passes, best first.
             xy_q, desc_q: the keypoints guided matching uses.
-            strong: the best pass has found the object (:meth:`_strong`): refine its pose only.
+            strong: the best pass has found the object (:meth:`_strong`): refine its pose only, once.
         """
         conf = self.conf
 
@@ -480,7 +480,7 @@ class PoseEstimator:
             r = refine(T, 1)
             if r is not None and (best is None or r.score > best.score):
                 best = r
-        best = finish(best)
+        best = best if strong else finish(best)
         if best is not None and conf.refine.flips and not strong:
             # A turned hypothesis starts up to ~20 degrees off, so one that finds a third of the best score in
             # its first round gets the remaining rounds before it is compared.
