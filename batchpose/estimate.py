@@ -31,7 +31,7 @@ from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.templates import TemplateLibrary
-from batchpose.track import Track, anchor_to_render, follow, seed
+from batchpose.track import Track, anchor_to_render, follow_all, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
@@ -590,12 +590,15 @@ class PoseEstimator:
         lost = self._lost if follows else {}
         self._tracks, self._lost, self._prev = {}, {}, None  # rebuilt below; stay empty if this frame fails
         out: dict[str, PoseRecord] = {}
-        for name in obj_names:
-            tr = tracks.get(name)
-            if tr is None or (tc.redetect_every and tr.age >= tc.redetect_every):
-                continue
-            t0 = time.perf_counter()
-            res = follow(prev["gray"], gray, tr, camera.K, camera.dist, tc)
+        due = [n for n in obj_names if n in tracks and not (tc.redetect_every and tracks[n].age >= tc.redetect_every)]
+        t0 = time.perf_counter()
+        moved_all = follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc) if due else []
+        followed = dict(zip(due, moved_all, strict=True))
+        t_flow = (time.perf_counter() - t0) / max(len(due), 1)  # one flow call for all: each pays its share
+        for name in due:
+            tr = tracks[name]
+            t0 = time.perf_counter() - t_flow
+            res = followed[name]
             if res is None:
                 log.debug("%s: track of %s lost, estimating afresh", frame.frame_id, name)
                 continue

@@ -152,41 +152,87 @@ def _solve_lm(X, xy, T, K, dist, conf: TrackConfig, n_needed: float):
     return out, keep, float(np.median(_residuals(X[keep], xy[keep], rvec, tvec, K, dist)))
 
 
-def follow(
-    prev_gray: np.ndarray, gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
-) -> TrackResult | None:
-    """Move ``track`` from ``prev_gray`` into ``gray``; None when the track is lost."""
-    if len(track.xy) < conf.min_points:
-        return None
-    lk = {
+def _lk_params(conf: TrackConfig) -> dict:
+    return {
         "winSize": (conf.window_px, conf.window_px),
         "maxLevel": conf.levels,
         "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
     }
-    p0 = track.xy.reshape(-1, 1, 2)
+
+
+def _split(values: np.ndarray, sizes: list[int]) -> list[np.ndarray]:
+    return np.split(values, np.cumsum(sizes)[:-1]) if sizes else []
+
+
+def follow(
+    prev_gray: np.ndarray, gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
+) -> TrackResult | None:
+    """Move ``track`` from ``prev_gray`` into ``gray``; None when the track is lost."""
+    return follow_all(prev_gray, gray, [track], K, dist, conf)[0]
+
+
+def follow_all(
+    prev_gray: np.ndarray,
+    gray: np.ndarray,
+    tracks: list[Track],
+    K: np.ndarray,
+    dist: np.ndarray,
+    conf: TrackConfig,
+) -> list[TrackResult | None]:
+    """:func:`follow` for several tracks in one frame (None for each track that is lost).
+
+    Lucas-Kanade tracks every point on its own, so all tracks' points share one forward and one backward
+    flow call (and the anchor flow one call per keyframe image): each call builds both images' pyramids,
+    which costs as much as flowing a few hundred points.
+    """
+    lk = _lk_params(conf)
+    out: list[TrackResult | None] = [None] * len(tracks)
+    live = [i for i, t in enumerate(tracks) if len(t.xy) >= conf.min_points]
+    if not live:
+        return out
+    sizes = [len(tracks[i].xy) for i in live]
+    p0 = np.vstack([tracks[i].xy for i in live]).reshape(-1, 1, 2).astype(np.float32)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev_gray, gray, p0, None, **lk)
     p0r, st0, _ = cv2.calcOpticalFlowPyrLK(gray, prev_gray, p1, None, **lk)
     fb = np.linalg.norm((p0r - p0).reshape(-1, 2), axis=1)
-    ok = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb <= conf.fb_max_px)
-    xy, X = p1.reshape(-1, 2)[ok].astype(np.float64), track.X[ok]
-    key_xy = track.key_xy[ok] if track.key_xy is not None else None
-    if len(xy) < max(conf.min_points, conf.min_fraction * track.n_seeded):
-        return None
-    if conf.anchor and track.key_gray is not None:
+    ok_all = (st1.ravel() == 1) & (st0.ravel() == 1) & (fb <= conf.fb_max_px)
+    moved = {}
+    for i, p1_i, ok in zip(live, _split(p1.reshape(-1, 2), sizes), _split(ok_all, sizes), strict=True):
+        track = tracks[i]
+        if ok.sum() >= max(conf.min_points, conf.min_fraction * track.n_seeded):
+            key_xy = track.key_xy[ok] if track.key_xy is not None else None
+            moved[i] = (p1_i[ok].astype(np.float64), track.X[ok], key_xy)
+    if conf.anchor:
         # Flow straight from the keyframe, started where frame-to-frame flow ended: frame-to-frame errors
-        # add up over a track, errors against the keyframe do not.
-        pk, stk, _ = cv2.calcOpticalFlowPyrLK(
-            track.key_gray,
-            gray,
-            key_xy.reshape(-1, 1, 2).astype(np.float32),
-            xy.reshape(-1, 1, 2).astype(np.float32),
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-            **{**lk, "maxLevel": 1},
-        )
-        pk = pk.reshape(-1, 2)
-        agree = (stk.ravel() == 1) & (np.linalg.norm(pk - xy, axis=1) <= conf.anchor_px)
-        xy[agree] = pk[agree]
-    # LM from the previous pose, trimming the points that do not fit (occluders, flow slips).
+        # add up over a track, errors against the keyframe do not. One call per keyframe image.
+        groups: dict[int, list[int]] = {}
+        for i in moved:
+            if tracks[i].key_gray is not None:
+                groups.setdefault(id(tracks[i].key_gray), []).append(i)
+        for members in groups.values():
+            sizes_g = [len(moved[i][0]) for i in members]
+            pk, stk, _ = cv2.calcOpticalFlowPyrLK(
+                tracks[members[0]].key_gray,
+                gray,
+                np.vstack([moved[i][2] for i in members]).reshape(-1, 1, 2).astype(np.float32),
+                np.vstack([moved[i][0] for i in members]).reshape(-1, 1, 2).astype(np.float32),
+                flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+                **{**lk, "maxLevel": 1},
+            )
+            for i, pk_i, st_i in zip(
+                members, _split(pk.reshape(-1, 2), sizes_g), _split(stk.ravel(), sizes_g), strict=True
+            ):
+                xy = moved[i][0]
+                agree = (st_i == 1) & (np.linalg.norm(pk_i - xy, axis=1) <= conf.anchor_px)
+                xy[agree] = pk_i[agree]
+    for i, (xy, X, key_xy) in moved.items():
+        out[i] = _solve_track(tracks[i], xy, X, key_xy, K, dist, conf)
+    return out
+
+
+def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig) -> TrackResult | None:
+    """LM from the previous pose on the flowed points, trimming the points that do not fit (occluders, flow
+    slips); the track moved on, or None when too few points fit."""
     solved = _solve_lm(
         X, xy, track.cam_from_model, K, dist, conf, max(conf.min_points, conf.min_fraction * track.n_seeded)
     )

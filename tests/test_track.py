@@ -252,6 +252,30 @@ def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
     assert np.all(depth[np.rint(xy[:, 1]).astype(int), np.rint(xy[:, 0]).astype(int)] > 0)
 
 
+def test_tracks_flowed_together_move_as_they_would_alone(cracker_model, clip):
+    """follow_all flows every track's points in shared calls: two tracks (the seeded corners split in
+    halves, one keyframe) end exactly where following each alone puts them, and on the true pose."""
+    from batchpose.track import Track, follow, follow_all, seed
+
+    (img0, T0), (img1, T1) = clip[0], clip[1]
+    rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T0, K_SYN, 640, 480)
+    g0, g1 = (cv2.cvtColor(i, cv2.COLOR_RGB2GRAY) for i in (img0, img1))
+    conf = TrackConfig()
+    xy, X = seed(g0, T0, cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), depth, K_SYN, np.zeros(0), conf)
+    h = len(xy) // 2
+    tracks = [
+        Track(xy[s], X[s], T0, len(xy[s]), 0.9, key_gray=g0, key_xy=xy[s].copy()) for s in (slice(0, h), slice(h, None))
+    ]
+    together = follow_all(g0, g1, tracks, K_SYN, np.zeros(0), conf)
+    alone = [follow(g0, g1, t, K_SYN, np.zeros(0), conf) for t in tracks]
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    for a, b in zip(together, alone, strict=True):
+        assert a is not None and b is not None and a.n_inliers == b.n_inliers
+        np.testing.assert_allclose(a.track.cam_from_model, b.track.cam_from_model, atol=1e-9)
+        np.testing.assert_allclose(a.track.xy, b.track.xy, atol=1e-4)
+        assert add_error(a.track.cam_from_model, T1, pts) < 0.01 * cracker_model.diameter_m
+
+
 @pytest.mark.slow
 def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, clip, tmp_path, cache_dir):
     """The whole job on a 10-frame MCAP of the clip, in tasks of 4 frames: --jobs 1, --jobs 2 and a run
