@@ -130,6 +130,13 @@ class PoseEstimator:
         self._prev: dict | None = None
 
     # -- per-object caches -------------------------------------------------------------------------
+    def warm_up(self) -> None:
+        """Build every object's library index now (a batch worker does this when it starts) rather than
+        in the first frame that needs it."""
+        for name in self.libraries:
+            if self.conf.method != "tp_ub":
+                self._library_index(name)
+
     def _library_index(self, name: str):
         if name not in self._lib_index:
             self._lib_index[name] = flann_index(self.libraries[name].desc, self.conf.match)

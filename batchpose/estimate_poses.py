@@ -47,6 +47,7 @@ def _estimator(
             renderer = get_renderer()
         _WORKER["key"] = key
         _WORKER["estimator"] = PoseEstimator(conf, libs, obj_ids, models=models, renderer=renderer)
+        _WORKER["estimator"].warm_up()
     return _WORKER["estimator"]
 
 

@@ -235,3 +235,11 @@ def test_staged_view_matching_gives_the_pairs_of_all_views(cracker_model, cracke
         rec = est.estimate_image(img, Camera(K_SYN, 640, 480), [cracker_model.name])[0]
         assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
         assert tested == ([8] if first else [])
+
+
+def test_warm_up_builds_every_library_index_before_the_first_frame(cracker_model, cracker_library):
+    """A worker builds its FLANN library indices when it starts (warm_up), not inside its first frame."""
+    est = PoseEstimator(EstimatorConfig(), {cracker_model.name: cracker_library})
+    assert est._lib_index == {}
+    est.warm_up()
+    assert list(est._lib_index) == [cracker_model.name] and est._lib_index[cracker_model.name] is not None
