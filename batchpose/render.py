@@ -54,9 +54,12 @@ class Renderer:
         self._count = 0
         self._meshes: dict[str, object] = {}
         self._lock = threading.Lock()
+        self.recreate_every = RECREATE_EVERY
+        """OSMesa only: renders per GL context. A process's memory grows by 1-3 MB a render until its
+        context is recreated (~170 ms with the mesh's textures); fewer renders per context keep it lower."""
 
     def _context(self, width: int, height: int):
-        recreate = self._count >= RECREATE_EVERY and os.environ.get("PYOPENGL_PLATFORM") == "osmesa"
+        recreate = self._count >= self.recreate_every and os.environ.get("PYOPENGL_PLATFORM") == "osmesa"
         if self._renderer is None or self._size != (width, height) or recreate:
             if self._renderer is not None:
                 self._renderer.delete()

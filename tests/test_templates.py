@@ -61,3 +61,26 @@ def test_missing_gl_backend_names_the_package():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=False)
     assert "PYOPENGL_PLATFORM=nosuchplatform" in r.stdout, r.stdout + r.stderr
     assert "libosmesa6" in r.stdout
+
+
+def test_renderer_makes_a_new_context_every_recreate_every_renders(cracker_model):
+    """OSMesa leaks per render until its context is recreated: with recreate_every = 2 the third render
+    runs in a new context and still draws the mesh (workers use 25; template builds 100)."""
+    import pytest  # noqa: PLC0415
+
+    from batchpose.render import Renderer  # noqa: PLC0415
+    from batchpose.views import look_at  # noqa: PLC0415
+
+    if os.environ.get("PYOPENGL_PLATFORM") != "osmesa":
+        pytest.skip("contexts are recreated only with OSMesa")
+    r = Renderer()
+    r.recreate_every = 2
+    T = look_at(cracker_model.center_m + np.array([0.5, 0.2, 0.3]), cracker_model.center_m, np.array([0, 0, 1.0]))
+    renders_in_context, filled = [], []
+    for _ in range(3):
+        _, depth = r.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480)
+        renders_in_context.append(r._count)
+        filled.append(int((depth > 0).sum()))
+    r.close()
+    assert renders_in_context == [1, 2, 1]
+    assert filled[0] > 1000 and filled[0] == filled[1] == filled[2]
