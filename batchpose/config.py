@@ -92,6 +92,7 @@ class MatchConfig:
     """query_to_template: the ratio is taken against the nearest neighbour whose 3D point is farther than
     this from the best match's (a second view of the same surface point is not a rival)."""
     top_k_templates: int = 3
+    """Keep the pairs of the k templates with the most surviving matches."""
     prefilter_views: int = 32
     """template_to_query: first vote for views with each frame keypoint's nearest template descriptor and
     test only the keypoints of the ``prefilter_views`` most-voted views (0: test every view). On ycbv_dev
@@ -102,7 +103,6 @@ class MatchConfig:
     """Whole-frame pass with ``prefilter_views``: test the keypoints of this many most-voted views first and
     the other views' only when those do not give a strong pose (``strong_inliers``); the pairs are then
     exactly those of all ``prefilter_views`` views. A strong object is matched ~4x faster (0: off)."""
-    """Keep the pairs of the k templates with the most surviving matches."""
     flann_trees: int = 4
     flann_checks: int = 32
     roi: str = "none"

@@ -133,9 +133,10 @@ class PoseEstimator:
     def warm_up(self) -> None:
         """Build every object's library index now (a batch worker does this when it starts) rather than
         in the first frame that needs it."""
+        if self.conf.method == "tp_ub":
+            return  # needs no matching
         for name in self.libraries:
-            if self.conf.method != "tp_ub":
-                self._library_index(name)
+            self._library_index(name)
 
     def _library_index(self, name: str):
         if name not in self._lib_index:
@@ -303,12 +304,17 @@ class PoseEstimator:
         """2D-3D pairs between the frame keypoints and the object's library (SPEC §2)."""
         conf, lib = self.conf, self.libraries[name]
         if conf.match.direction == "template_to_query":
-            views = None
-            if prefilter_views and prefilter_views < lib.n_views:
-                views = vote_views(desc_q, self._library_index(name), lib, prefilter_views, conf.match, roi)
+            views = self._voted_views(name, desc_q, roi, prefilter_views)
             return match_template_to_query(xy_q, query_index, lib, conf.match, candidate_mask=roi, views=views)
         sel = np.ones(len(xy_q), bool) if roi is None else roi
         return match_query_to_template(xy_q[sel], desc_q[sel], self._library_index(name), lib, conf.match)
+
+    def _voted_views(self, name, desc_q, roi, n_views: int) -> np.ndarray | None:
+        """The ``n_views`` views the frame keypoints vote for (None: test every view)."""
+        lib = self.libraries[name]
+        if not n_views or n_views >= lib.n_views:
+            return None
+        return vote_views(desc_q, self._library_index(name), lib, n_views, self.conf.match, roi)
 
     def _coarse(self, name, xy_q, desc_q, query_index, roi, camera: Camera, timings: dict[str, float]):
         """The whole-frame pass: (result, pairs). With ``match.first_views``, the most-voted views are
@@ -321,7 +327,7 @@ class PoseEstimator:
             corr = self._match(name, xy_q, desc_q, query_index, roi, n_views)
             timings["match"] = time.perf_counter() - t0
             return self._solve(name, corr, camera, timings), corr
-        views = vote_views(desc_q, self._library_index(name), lib, n_views, conf.match, roi)
+        views = self._voted_views(name, desc_q, roi, n_views)
         cand = template_to_query_candidates(query_index, lib, conf.match, roi, views[:first])
         corr = top_k_pairs(cand, lib, xy_q, conf.match)
         timings["match"] = time.perf_counter() - t0
@@ -640,7 +646,7 @@ class PoseEstimator:
         rest = [n for n in obj_names if n not in out]
         # An object still lost since the previous frame gets the full estimate only every
         # ``lost_full_every``-th frame, a quick one in between.
-        quick = frozenset(n for n in rest if lost.get(n, 0) % max(tc.lost_full_every, 1))
+        quick = frozenset(n for n in rest if lost.get(n, 0) % tc.lost_full_every)
         for rec in self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick) if rest else []:
             out[rec.obj_name] = rec
             if rec.ok and rec.confidence >= tc.min_confidence:
