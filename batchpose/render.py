@@ -52,7 +52,8 @@ class Renderer:
         self._renderer = None
         self._size: tuple[int, int] | None = None
         self._count = 0
-        self._meshes: dict[str, object] = {}
+        self._meshes: dict[str, object] = {}  # key -> pyrender.Mesh, all in self._scene
+        self._scene = None
         self._lock = threading.Lock()
         self.recreate_every = RECREATE_EVERY
         """OSMesa only: renders per GL context. A process's memory grows by 1-3 MB a render until its
@@ -80,6 +81,7 @@ class Renderer:
             self._size = (width, height)
             self._count = 0
             self._meshes.clear()  # GL buffers belonged to the old context
+            self._scene = None
         return self._renderer
 
     def render(
@@ -110,21 +112,39 @@ class Renderer:
         pr = self._pr
         with self._lock:
             r = self._context(width, height)
-            if key not in self._meshes:
-                self._meshes[key] = pr.Mesh.from_trimesh(mesh, smooth=False)
-            ambient = [1.0, 1.0, 1.0] if shading == "flat" else [0.35, 0.35, 0.35]
-            scene = pr.Scene(ambient_light=ambient, bg_color=[0.0, 0.0, 0.0, 0.0])
-            scene.add(self._meshes[key])
+            scene = self._scene_with(key, mesh)
+            scene.ambient_light = [1.0, 1.0, 1.0] if shading == "flat" else [0.35, 0.35, 0.35]
             # pyrender's principal point counts from pixel edges, OpenCV's from pixel centres.
             cam = pr.IntrinsicsCamera(K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, znear=znear_m, zfar=zfar_m)
             model_from_cam_gl = np.linalg.inv(cam_from_model) @ _CV_TO_GL
-            scene.add(cam, pose=model_from_cam_gl)
+            added = [scene.add(cam, pose=model_from_cam_gl)]
             flags = pr.RenderFlags.FLAT if shading == "flat" else pr.RenderFlags.NONE
             if shading == "lit":
-                scene.add(pr.DirectionalLight(color=np.ones(3), intensity=2.5), pose=model_from_cam_gl)
-            color, depth = r.render(scene, flags=flags)
+                added.append(scene.add(pr.DirectionalLight(color=np.ones(3), intensity=2.5), pose=model_from_cam_gl))
+            try:
+                color, depth = r.render(scene, flags=flags)
+            finally:
+                for node in added:
+                    scene.remove_node(node)
             self._count += 1
         return np.ascontiguousarray(color[:, :, :3]), depth.astype(np.float32)
+
+    def _scene_with(self, key: str, mesh):
+        """The context's one scene, holding every mesh rendered in it, with only ``key``'s visible.
+
+        pyrender uploads the meshes and textures of the scene it renders and deletes those of the previous
+        scene that this one lacks, so a scene per render would upload an object's textures again every time
+        the rendered object changes (~25 ms for a 2048² texture); hidden meshes stay in GL memory instead.
+        """
+        pr = self._pr
+        if self._scene is None:
+            self._scene = pr.Scene(bg_color=[0.0, 0.0, 0.0, 0.0])
+        if key not in self._meshes:
+            self._meshes[key] = pr.Mesh.from_trimesh(mesh, smooth=False)
+            self._scene.add(self._meshes[key])
+        for k, m in self._meshes.items():
+            m.is_visible = k == key
+        return self._scene
 
     def close(self) -> None:
         """Free the GL context (pyrender's own finaliser fails noisily during interpreter shutdown)."""
@@ -135,6 +155,7 @@ class Renderer:
                 pass
             self._renderer = None
             self._meshes.clear()
+            self._scene = None
 
 
 _RENDERER: Renderer | None = None

@@ -84,3 +84,27 @@ def test_renderer_makes_a_new_context_every_recreate_every_renders(cracker_model
     r.close()
     assert renders_in_context == [1, 2, 1]
     assert filled[0] > 1000 and filled[0] == filled[1] == filled[2]
+
+
+def test_a_render_does_not_depend_on_what_was_rendered_before(cracker_model):
+    """Every mesh stays in the context's one scene, hidden unless rendered (so switching objects does not
+    upload textures again): the cracker box after the gelatin box, and lit after flat, is pixel for pixel
+    the cracker box in a fresh renderer."""
+    from batchpose.config import MeshConfig  # noqa: PLC0415
+    from batchpose.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.render import Renderer  # noqa: PLC0415
+    from batchpose.views import look_at  # noqa: PLC0415
+    from tests.conftest import GELATIN  # noqa: PLC0415
+
+    gelatin = load_mesh(GELATIN, MeshConfig(), name="009_gelatin_box")
+    T = look_at(cracker_model.center_m + np.array([0.4, 0.2, 0.3]), cracker_model.center_m, np.array([0, 0, 1.0]))
+    fresh, switched = Renderer(), Renderer()
+    for shading in ("flat", "lit"):
+        want = fresh.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, shading)
+        other = switched.render(gelatin.content_hash, gelatin.mesh, T, K_SYN, 640, 480, "lit")
+        got = switched.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, shading)
+        assert (other[1] > 0).sum() > 500  # the gelatin box was drawn in between
+        assert (want[1] > 0).sum() > 1000
+        assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
+    fresh.close()
+    switched.close()
