@@ -52,18 +52,19 @@ class Renderer:
         self._renderer = None
         self._size: tuple[int, int] | None = None
         self._count = 0
-        self._meshes: dict[str, object] = {}  # key -> pyrender.Mesh, all in self._scene
-        self._scene = None
+        self._meshes: dict[str, object] = {}  # key -> pyrender.Mesh (kept across contexts)
+        self._scene = None  # this context's scene
+        self._in_scene: set[str] = set()
         self._lock = threading.Lock()
         self.recreate_every = RECREATE_EVERY
         """OSMesa only: renders per GL context. A process's memory grows by 1-3 MB a render until its
-        context is recreated (~170 ms with the mesh's textures); fewer renders per context keep it lower."""
+        context is recreated (then each mesh's textures are uploaded again, ~50 ms for 2048²); fewer renders per
+        context keep it lower."""
 
     def _context(self, width: int, height: int):
         recreate = self._count >= self.recreate_every and os.environ.get("PYOPENGL_PLATFORM") == "osmesa"
         if self._renderer is None or self._size != (width, height) or recreate:
-            if self._renderer is not None:
-                self._renderer.delete()
+            self._delete_context()
             try:
                 self._renderer = self._pr.OffscreenRenderer(width, height)
             except Exception as e:
@@ -80,9 +81,19 @@ class Renderer:
                 ) from None
             self._size = (width, height)
             self._count = 0
-            self._meshes.clear()  # GL buffers belonged to the old context
-            self._scene = None
         return self._renderer
+
+    def _delete_context(self) -> None:
+        """Free the GL context and everything in it: ``OffscreenRenderer.delete`` without its
+        ``gc.collect()`` (~85 ms with a worker's heap; the context's buffers are freed without it)."""
+        r, self._renderer = self._renderer, None
+        self._scene, self._in_scene = None, set()
+        if r is None:
+            return
+        r._platform.make_current()
+        r._renderer.delete()  # deletes the meshes' and textures' GL objects, so the Mesh objects can be reused
+        r._platform.delete_context()
+        r._renderer = r._platform = None
 
     def render(
         self,
@@ -141,21 +152,20 @@ class Renderer:
             self._scene = pr.Scene(bg_color=[0.0, 0.0, 0.0, 0.0])
         if key not in self._meshes:
             self._meshes[key] = pr.Mesh.from_trimesh(mesh, smooth=False)
+        if key not in self._in_scene:
             self._scene.add(self._meshes[key])
-        for k, m in self._meshes.items():
-            m.is_visible = k == key
+            self._in_scene.add(key)
+        for k in self._in_scene:
+            self._meshes[k].is_visible = k == key
         return self._scene
 
     def close(self) -> None:
         """Free the GL context (pyrender's own finaliser fails noisily during interpreter shutdown)."""
-        if self._renderer is not None:
-            try:
-                self._renderer.delete()
-            except Exception:  # noqa: BLE001 - best effort at exit
-                pass
+        try:
+            self._delete_context()
+        except Exception:  # noqa: BLE001 - best effort at exit
             self._renderer = None
-            self._meshes.clear()
-            self._scene = None
+        self._meshes.clear()
 
 
 _RENDERER: Renderer | None = None
