@@ -29,7 +29,6 @@ from batchpose.mesh import load_mesh
 log = logging.getLogger("batchpose")
 
 _WORKER: dict = {}
-WORKER_RENDERS_PER_CONTEXT = 25
 
 
 def _estimator(
@@ -46,9 +45,6 @@ def _estimator(
 
             models = {name: load_mesh(Path(p), conf.mesh, name=name) for name, p in mesh_paths.items()}
             renderer = get_renderer()
-            # A worker renders a few times per task (refinement, seeding, refreshes), so a context per 25
-            # renders costs ~0.5 ms a frame and keeps its memory from creeping up over a long run.
-            renderer.recreate_every = WORKER_RENDERS_PER_CONTEXT
         _WORKER["key"] = key
         _WORKER["estimator"] = PoseEstimator(conf, libs, obj_ids, models=models, renderer=renderer)
         _WORKER["estimator"].warm_up()

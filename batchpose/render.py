@@ -1,8 +1,7 @@
 """Headless RGB + metric depth rendering with pyrender. The only module that imports the renderer.
 
 Backend: ``PYOPENGL_PLATFORM`` if set, else OSMesa (samples exactly at pixel centres, and is faster than
-EGL on llvmpipe). OSMesa leaks 1-3 MB per render, so the GL context is recreated every
-``RECREATE_EVERY`` renders.
+EGL on llvmpipe). One GL context per process and image size, one scene in it holding every mesh.
 """
 
 from __future__ import annotations
@@ -23,7 +22,6 @@ _GL_PACKAGES = {
     "osmesa": "libosmesa6",
     "egl": "libegl1 libegl-mesa0 libgl1-mesa-dri",
 }
-RECREATE_EVERY = 100
 
 # OpenCV camera (x right, y down, z forward) -> OpenGL camera (y up, z backward).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -44,6 +42,33 @@ def _import_pyrender():
         ) from None
 
 
+def _program_cache(pr):
+    """A pyrender shader-program cache that finds its programs again under OSMesa.
+
+    pyrender keys its cache by ``OpenGL.contextdata.getContext()``, which under OSMesa is a new ctypes
+    object on every call: each render compiled its shader program again (~1.3 ms) and kept it (1-3 MB of
+    llvmpipe code) until the context was deleted. A cache belongs to one renderer and so to one context;
+    this one keys by the shaders and their defines alone.
+    """
+
+    class ProgramCache(pr.shader_program.ShaderProgramCache):
+        def __init__(self) -> None:
+            super().__init__()
+            self._by_shaders: dict = {}
+
+        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
+            if key not in self._by_shaders:
+                self._by_shaders[key] = super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
+            return self._by_shaders[key]
+
+        def clear(self) -> None:
+            super().clear()
+            self._by_shaders.clear()
+
+    return ProgramCache()
+
+
 class Renderer:
     """Renders one mesh at a time; keeps one GL context per process and per image size."""
 
@@ -51,22 +76,17 @@ class Renderer:
         self._pr = _import_pyrender()
         self._renderer = None
         self._size: tuple[int, int] | None = None
-        self._count = 0
         self._meshes: dict[str, object] = {}  # key -> pyrender.Mesh (kept across contexts)
         self._scene = None  # this context's scene
         self._in_scene: set[str] = set()
         self._lock = threading.Lock()
-        self.recreate_every = RECREATE_EVERY
-        """OSMesa only: renders per GL context. A process's memory grows by 1-3 MB a render until its
-        context is recreated (then each mesh's textures are uploaded again, ~50 ms for 2048²); fewer renders per
-        context keep it lower."""
 
     def _context(self, width: int, height: int):
-        recreate = self._count >= self.recreate_every and os.environ.get("PYOPENGL_PLATFORM") == "osmesa"
-        if self._renderer is None or self._size != (width, height) or recreate:
+        if self._renderer is None or self._size != (width, height):
             self._delete_context()
             try:
                 self._renderer = self._pr.OffscreenRenderer(width, height)
+                self._renderer._renderer._program_cache = _program_cache(self._pr)
             except Exception as e:
                 platform = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
                 if "OSMesaCreateContextAttribs" in str(e):
@@ -80,7 +100,6 @@ class Renderer:
                     f"the Debian package(s) {pkg} (make setup does) or set PYOPENGL_PLATFORM=osmesa or egl"
                 ) from None
             self._size = (width, height)
-            self._count = 0
         return self._renderer
 
     def _delete_context(self) -> None:
@@ -137,7 +156,6 @@ class Renderer:
             finally:
                 for node in added:
                     scene.remove_node(node)
-            self._count += 1
         return np.ascontiguousarray(color[:, :, :3]), depth.astype(np.float32)
 
     def _scene_with(self, key: str, mesh):
