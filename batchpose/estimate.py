@@ -131,12 +131,16 @@ class PoseEstimator:
 
     # -- per-object caches -------------------------------------------------------------------------
     def warm_up(self) -> None:
-        """Build every object's library index now (a batch worker does this when it starts) rather than
-        in the first frame that needs it."""
+        """Build every object's library index and render each mesh once now (a batch worker does this when
+        it starts) rather than in the first frame that needs them: the first render makes the GL context,
+        uploads the mesh and its textures and compiles the shaders (~0.1 s an object)."""
         if self.conf.method == "tp_ub":
             return  # needs no matching
         for name in self.libraries:
             self._library_index(name)
+            if self.renderer is not None and name in self.models:
+                lib = self.libraries[name]
+                self._render(name, lib.cam_from_model(0), Camera(lib.K, lib.width, lib.height))
 
     def _library_index(self, name: str):
         if name not in self._lib_index:

@@ -238,8 +238,18 @@ def test_staged_view_matching_gives_the_pairs_of_all_views(cracker_model, cracke
 
 
 def test_warm_up_builds_every_library_index_before_the_first_frame(cracker_model, cracker_library):
-    """A worker builds its FLANN library indices when it starts (warm_up), not inside its first frame."""
-    est = PoseEstimator(EstimatorConfig(), {cracker_model.name: cracker_library})
+    """A worker builds its FLANN library indices and renders each mesh once when it starts (warm_up), not
+    inside its first frame."""
+    renders = []
+
+    class Spy:
+        def render(self, key, *args, **kwargs):
+            renders.append(key)
+            return get_renderer().render(key, *args, **kwargs)
+
+    libs = {cracker_model.name: cracker_library}
+    est = PoseEstimator(EstimatorConfig(), libs, models={cracker_model.name: cracker_model}, renderer=Spy())
     assert est._lib_index == {}
     est.warm_up()
     assert list(est._lib_index) == [cracker_model.name] and est._lib_index[cracker_model.name] is not None
+    assert renders == [cracker_model.content_hash]
