@@ -1,7 +1,7 @@
 """Template library: cold build time per object (renders, SIFT) and a cached load (0 renders).
 
 For each object of the manifest, in a fresh cache folder: ``build_templates.main`` cold, with every
-``Renderer.render`` call and every template ``detect`` (SIFT) call counted and timed; then the same call
+``Renderer.render`` call and every template ``detect_shapes`` (SIFT) call counted and timed; then the same call
 again (must find the cache: 0 renders) and ``build_templates.load`` (what each worker does at start-up).
 The GL context is created before timing (with a stand-in box mesh), so the first object does not pay it.
 
@@ -95,7 +95,7 @@ def main() -> int:
                 t_mesh = time.perf_counter() - t0
                 with StageTimer() as tm:
                     tm.wrap(Renderer, "render", "render")
-                    tm.wrap(templates, "detect", "sift")
+                    tm.wrap(templates, "detect_shapes", "sift")
                     tm.wrap(build_templates, "save", "save")
                     t0 = time.perf_counter()
                     lib_dir = build_templates.main(
