@@ -170,36 +170,6 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
-class ShapeConfig:
-    """Shape search (:mod:`batchpose.shape`, off by default: seconds per object and frame). For an object
-    whose SIFT passes find no pose, an implausible one or one below ``below`` confidence: edge templates
-    find its outline, the best ``hypotheses`` are refined by their colour score, and the best of them
-    replaces the SIFT pose when its colour score is higher. For plain objects SIFT misses (reports/ACCURACY.md,
-    "Session 7": the mustard bottle's five real ycbv_dev frames)."""
-
-    enabled: bool = False
-    below: float = 0.5
-    """Run when the SIFT pose's confidence is below this (or there is none)."""
-    level: int = 4
-    """Match the templates at 1/level of the image resolution."""
-    view_step: int = 2
-    """Use every view_step-th library view (at the nearer template distance)."""
-    angle_step_deg: float = 15.0
-    """In-plane angles of each view."""
-    scales_per_octave: int = 4
-    min_span_px: float = 48.0
-    """Smallest object diameter in the image searched for, pixels."""
-    max_span_fraction: float = 0.8
-    """Largest, as a fraction of the image's shorter side."""
-    margin: float = 0.05
-    """Background kept around each view's outline in its template, as a fraction of the object's diameter."""
-    hypotheses: int = 6
-    """Best templates refined by their colour score."""
-    refine_renders: int = 200
-    """Renders each hypothesis's colour refinement may use."""
-
-
-@dataclass(frozen=True)
 class FineConfig:
     """Coarse-to-fine matching (batchpose's addition): after the whole-frame pass, find the object's box
     and match again inside it, upsampled, against every template view."""
@@ -344,7 +314,6 @@ class EstimatorConfig:
     gnc: GncConfig = field(default_factory=GncConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
     fine: FineConfig = field(default_factory=FineConfig)
-    shape: ShapeConfig = field(default_factory=ShapeConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
 
 
@@ -452,15 +421,6 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
     ):
         if not ok:
             raise ConfigError(f"{where}: track.{key} must {need}, got {getattr(tc, key)}")
-    sc = conf.shape
-    if min(sc.level, sc.view_step, sc.scales_per_octave, sc.hypotheses, sc.refine_renders) < 1:
-        raise ConfigError(
-            f"{where}: shape.level, view_step, scales_per_octave, hypotheses and refine_renders must be >= 1"
-        )
-    if sc.angle_step_deg <= 0 or sc.min_span_px < 8 or not 0 < sc.max_span_fraction <= 2:
-        raise ConfigError(
-            f"{where}: shape.angle_step_deg must be positive, min_span_px >= 8 and max_span_fraction in (0, 2]"
-        )
     if conf.strong_inliers < 0:
         raise ConfigError(f"{where}: strong_inliers must be >= 0, got {conf.strong_inliers}")
     if not 0 < conf.gnc.gamma < 1:

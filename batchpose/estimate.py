@@ -30,8 +30,6 @@ from batchpose.frames import Camera, Frame, ObjectPose, decode_image
 from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
-from batchpose.shape import ShapeBank, colour_score, edge_image, refine_colour, search
-from batchpose.shape import pose_from as shape_pose_from
 from batchpose.templates import TemplateLibrary
 from batchpose.track import Track, anchor_to_render, follow_all, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
@@ -126,7 +124,6 @@ class PoseEstimator:
         self._lib_index: dict[str, object] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flip_cache: dict[str, list[np.ndarray]] = {}
-        self._shape_banks: dict[str, tuple] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
@@ -193,10 +190,8 @@ class PoseEstimator:
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
         records = []
         for name in obj_names:
-            keypoints = (xy_q, desc_q, shapes_q)
-            gt_pose = gt_by_name.get(name)
             rec = self._estimate_object(
-                name, gray, keypoints, query_index, camera, gt_pose, frame_id, name in quick, rgb=rgb
+                name, gray, (xy_q, desc_q, shapes_q), query_index, camera, gt_by_name.get(name), frame_id, name in quick
             )
             rec.timings["sift"] = t_sift
             records.append(rec)
@@ -238,7 +233,6 @@ class PoseEstimator:
         gt_pose: np.ndarray | None,
         frame_id: str,
         quick: bool = False,
-        rgb: np.ndarray | None = None,
     ) -> PoseRecord:
         conf = self.conf
         if conf.method == "tp_ub":
@@ -294,15 +288,6 @@ class PoseEstimator:
             timings["refine"] = time.perf_counter() - t0
             if refined is not None:
                 res, x_used = refined.result, refined.x
-        shape_due = conf.shape.enabled and rgb is not None and not strong and self._can_refine(name)
-        if shape_due and self._weak(name, res, camera, conf.shape.below):
-            t0 = time.perf_counter()
-            shaped = self._shape_pose(name, rgb, camera, res)
-            timings["shape"] = time.perf_counter() - t0
-            if shaped is not None:
-                rec.cam_from_model, rec.confidence = shaped
-                rec.n_matches, rec.reason = len(corr), "found by its outline and colour (shape search)"
-                return rec
         if res is None:
             rec.status = "too_few_matches"
             rec.reason = f"{len(corr)} matches after the ratio test, need {conf.min_matches}"
@@ -423,43 +408,12 @@ class PoseEstimator:
             return False
         return not self._implausible(name, res.cam_from_model, camera)
 
-    def _weak(self, name: str, res, camera: Camera, below: float | None = None) -> bool:
-        """True when ``res`` (the best pass so far) is no pose, an implausible one or one below ``below``
-        confidence (default ``fine.locate_below``)."""
+    def _weak(self, name: str, res, camera: Camera) -> bool:
+        """True when ``res`` (the best pass so far) is no pose, an implausible one or one below
+        ``fine.locate_below`` confidence."""
         if res is None or res.status != "ok" or self._implausible(name, res.cam_from_model, camera):
             return True
-        below = self.conf.fine.locate_below if below is None else below
-        return confidence(res.n_inliers, res.median_residual_px, self.conf) < below
-
-    def _shape_pose(self, name: str, rgb: np.ndarray, camera: Camera, res) -> tuple[np.ndarray, float] | None:
-        """The shape search's best pose and its confidence (its colour score, capped below 0.5 so that it
-        never seeds a track), when its colour score beats the SIFT pose ``res``'s; None otherwise."""
-        sc, lib, model = self.conf.shape, self.libraries[name], self.models[name]
-        f_px = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
-        key = (round(f_px, 3), camera.width, camera.height)
-        if self._shape_banks.get(name, (None,))[0] != key:
-            lib_cam = Camera(lib.K, lib.width, lib.height)
-            bank = ShapeBank(
-                lambda T: self._render(name, T, lib_cam), lib, f_px, (camera.width, camera.height), model.diameter_m, sc
-            )
-            self._shape_banks[name] = (key, bank)
-        bank = self._shape_banks[name][1]
-
-        def render(T):
-            return self._render(name, T, camera)
-
-        floor = -np.inf
-        if res is not None and res.status == "ok" and not self._implausible(name, res.cam_from_model, camera):
-            floor = colour_score(render, rgb, res.cam_from_model)
-            floor = floor if np.isfinite(floor) else -np.inf
-        best = None
-        for hit in search(bank, edge_image(to_gray(rgb), sc.level), sc.hypotheses):
-            T, score, _ = refine_colour(
-                render, rgb, shape_pose_from(lib, hit, camera.K), model.center_m, sc.refine_renders
-            )
-            if score > floor and not self._implausible(name, T, camera) and (best is None or score > best[0]):
-                best = (score, T)
-        return None if best is None else (best[1], float(np.clip(best[0], 0.0, 0.49)))
+        return confidence(res.n_inliers, res.median_residual_px, self.conf) < self.conf.fine.locate_below
 
     def _fine_pass(self, name, gray, box, camera, extra: Correspondences | None = None):
         """Match again inside ``box``, upsampled, plus the ``extra`` pairs: (result, pairs, keypoints,

@@ -18,7 +18,7 @@ import numpy as np
 
 STATUSES = ("ok", "too_few_matches", "pnp_failed", "bad_image", "bad_camera", "error")
 #: Per-(frame, object) timing stages, in pipeline order.
-STAGES = ("decode", "track", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "shape", "seed")
+STAGES = ("decode", "track", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "seed")
 
 
 @dataclass
