@@ -78,7 +78,6 @@ class Renderer:
         self._size: tuple[int, int] | None = None
         self._meshes: dict[str, object] = {}  # key -> pyrender.Mesh (kept across contexts)
         self._scene = None  # this context's scene
-        self._in_scene: set[str] = set()
         self._lock = threading.Lock()
 
     def _context(self, width: int, height: int):
@@ -86,7 +85,6 @@ class Renderer:
             self._delete_context()
             try:
                 self._renderer = self._pr.OffscreenRenderer(width, height)
-                self._renderer._renderer._program_cache = _program_cache(self._pr)
             except Exception as e:
                 platform = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
                 if "OSMesaCreateContextAttribs" in str(e):
@@ -99,6 +97,7 @@ class Renderer:
                     f"cannot create an offscreen GL context with PYOPENGL_PLATFORM={platform} ({e}); install "
                     f"the Debian package(s) {pkg} (make setup does) or set PYOPENGL_PLATFORM=osmesa or egl"
                 ) from None
+            self._renderer._renderer._program_cache = _program_cache(self._pr)
             self._size = (width, height)
         return self._renderer
 
@@ -106,7 +105,7 @@ class Renderer:
         """Free the GL context and everything in it: ``OffscreenRenderer.delete`` without its
         ``gc.collect()`` (~85 ms with a worker's heap; the context's buffers are freed without it)."""
         r, self._renderer = self._renderer, None
-        self._scene, self._in_scene = None, set()
+        self._scene = None
         if r is None:
             return
         r._platform.make_current()
@@ -170,11 +169,11 @@ class Renderer:
             self._scene = pr.Scene(bg_color=[0.0, 0.0, 0.0, 0.0])
         if key not in self._meshes:
             self._meshes[key] = pr.Mesh.from_trimesh(mesh, smooth=False)
-        if key not in self._in_scene:
-            self._scene.add(self._meshes[key])
-            self._in_scene.add(key)
-        for k in self._in_scene:
-            self._meshes[k].is_visible = k == key
+        wanted = self._meshes[key]
+        if wanted not in self._scene.meshes:
+            self._scene.add(wanted)
+        for m in self._scene.meshes:
+            m.is_visible = m is wanted
         return self._scene
 
     def close(self) -> None:
