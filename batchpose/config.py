@@ -282,6 +282,43 @@ class TrackConfig:
 
 
 @dataclass(frozen=True)
+class DepthConfig:
+    """Optional use of a depth image registered to the colour image (batchpose's addition; see
+    :mod:`batchpose.depth`). The RGB estimate is unchanged; each pose it finds is then aligned to the sensor's
+    depth (robust point-to-plane ICP on the object's pixels), which fixes the weak axis of a monocular pose,
+    the distance along the viewing ray. Frames without a depth image keep their RGB poses."""
+
+    enabled: bool = False
+    iterations: int = 10
+    """ICP iterations (the object's pixels are chosen anew at each)."""
+    gate_m: float = 0.03
+    """A pixel is the object's when its sensor depth is within this of the mesh rendered at the pose: at the
+    first iteration ..."""
+    gate_final_m: float = 0.01
+    """... narrowing linearly to this at the last."""
+    min_pixels: int = 50
+    """Fewer object pixels with a sensor reading than this: the pose is left as the RGB estimate gave it."""
+    max_points: int = 3000
+    """Object pixels used per iteration (evenly subsampled)."""
+    damping: float = 0.001
+    """Levenberg damping of the ICP step (relative): directions the depth cannot see, such as a can's turn
+    about its axis, stay where the RGB estimate put them."""
+    max_shift: float = 0.25
+    """An alignment that moves the object's centre by more than this fraction of its diameter, or turns it by
+    more than ``max_turn_deg``, is not used: the RGB pose and the depth disagree about which surface it is."""
+    max_turn_deg: float = 20.0
+    """See ``max_shift``."""
+    max_see_through: float = 0.5
+    """With more than this fraction of the object's silhouette showing sensor depth farther than the object
+    (the camera sees past where the pose puts it), the pose contradicts the depth: status pnp_failed.
+    Nearer readings are occluders and do not count (1: never fail a pose)."""
+    min_agree: float = 0.1
+    """With less than this fraction of the silhouette's readings within a quarter of the object's diameter of
+    the rendered surface, the pose contradicts the depth too: the sensor sees the object nowhere there, e.g.
+    a pose far behind the objects in front of it (0: never fail a pose)."""
+
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     """Everything that decides a pose, one section per stage."""
 
@@ -315,6 +352,7 @@ class EstimatorConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     fine: FineConfig = field(default_factory=FineConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
 
 
 _CHOICES = {
@@ -421,6 +459,21 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
     ):
         if not ok:
             raise ConfigError(f"{where}: track.{key} must {need}, got {getattr(tc, key)}")
+    dc = conf.depth
+    for key, ok, need in (
+        ("iterations", dc.iterations >= 1, "be >= 1"),
+        ("gate_m", dc.gate_m > 0, "be positive"),
+        ("gate_final_m", 0 < dc.gate_final_m <= dc.gate_m, "be positive and at most gate_m"),
+        ("min_pixels", dc.min_pixels >= 6, "be >= 6"),
+        ("max_points", dc.max_points >= dc.min_pixels, "be >= min_pixels"),
+        ("damping", dc.damping >= 0, "be >= 0"),
+        ("max_shift", dc.max_shift > 0, "be positive"),
+        ("max_turn_deg", dc.max_turn_deg > 0, "be positive"),
+        ("max_see_through", 0 <= dc.max_see_through <= 1, "be in [0, 1]"),
+        ("min_agree", 0 <= dc.min_agree <= 1, "be in [0, 1]"),
+    ):
+        if not ok:
+            raise ConfigError(f"{where}: depth.{key} must {need}, got {getattr(dc, key)}")
     if conf.strong_inliers < 0:
         raise ConfigError(f"{where}: strong_inliers must be >= 0, got {conf.strong_inliers}")
     if not 0 < conf.gnc.gamma < 1:

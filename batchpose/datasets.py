@@ -199,10 +199,10 @@ class YcbvFrameSource(FrameSource):
     def _meta_path(color: Path) -> Path:
         return color.with_name(color.name.replace("-color.png", "-meta.mat"))
 
-    def _read_meta(self, meta: Path) -> tuple[np.ndarray, tuple[ObjectPose, ...]]:
+    def _read_meta(self, meta: Path) -> tuple[np.ndarray, tuple[ObjectPose, ...], float]:
         try:
             # meta.mat also holds a 480x640x3 vertmap; load only what we need.
-            m = scipy.io.loadmat(str(meta), variable_names=["cls_indexes", "poses", "intrinsic_matrix"])
+            m = scipy.io.loadmat(str(meta), variable_names=["cls_indexes", "poses", "intrinsic_matrix", "factor_depth"])
         except (OSError, ValueError, TypeError, MatReadError) as e:
             raise DataError(f"{meta}: cannot read MATLAB file ({one_line(e)})") from None
         for key in ("cls_indexes", "poses", "intrinsic_matrix"):
@@ -226,12 +226,16 @@ class YcbvFrameSource(FrameSource):
             T = np.eye(4)
             T[:3, :] = poses[:, :, i]
             gt.append(ObjectPose(obj_name=self.classes[c - 1], cam_from_model=T))
-        return K, tuple(gt)
+        factor = np.asarray(m.get("factor_depth", 0), dtype=np.float64).reshape(-1)
+        depth_scale_m = 1.0 / float(factor[0]) if factor.size and factor[0] > 0 else 0.0
+        return K, tuple(gt), depth_scale_m
 
     def __iter__(self) -> Iterator[Frame]:
         for index, (color, scene_id, im_id, frame_id) in enumerate(self._items):
-            K, gt = self._read_meta(self._meta_path(color))
+            K, gt, depth_scale_m = self._read_meta(self._meta_path(color))
             data = _read_bytes(color)
+            depth = color.with_name(color.name.replace("-color.png", "-depth.png"))
+            has_depth = depth_scale_m > 0 and depth.is_file()
             yield Frame(
                 frame_id=frame_id,
                 scene_id=scene_id,
@@ -242,6 +246,9 @@ class YcbvFrameSource(FrameSource):
                 image_data=data,
                 gt=gt,
                 source=str(color),
+                depth_format="png" if has_depth else "",
+                depth_data=_read_bytes(depth) if has_depth else b"",
+                depth_scale_m=depth_scale_m if has_depth else 0.0,
             )
 
     def count(self) -> int:
@@ -289,8 +296,8 @@ class BopFrameSource(FrameSource):
             scenes = sorted(p for p in self.root.iterdir() if p.is_dir() and (p / "scene_camera.json").is_file())
         if not scenes:
             raise DataError(f"{self.root}: no BOP scenes (expected <scene>/scene_camera.json)")
-        #: (scene folder, scene_id, im_id, image path, cam_K) per frame, in reading order.
-        self._items: list[tuple[Path, int, int, Path, np.ndarray]] = []
+        #: (scene folder, scene_id, im_id, image path, cam_K, depth path or None, depth metres per unit).
+        self._items: list[tuple[Path, int, int, Path, np.ndarray, Path | None, float]] = []
         for scene in scenes:
             scene_id = int(scene.name) if scene.name.isdigit() else 0
             cams_path = scene / "scene_camera.json"
@@ -312,7 +319,14 @@ class BopFrameSource(FrameSource):
                 if image is None:
                     raise DataError(f"{rgb / f'{im_id:06d}.png'}: missing (listed in {cams_path.name})")
                 K = np.asarray(cam_K, dtype=np.float64).reshape(3, 3)
-                self._items.append((scene, scene_id, im_id, image, K))
+                depth = scene / "depth" / f"{im_id:06d}.png"
+                scale = cams[key].get("depth_scale", 1.0)  # BOP: millimetres per unit
+                if not isinstance(scale, (int, float)) or not scale > 0:
+                    raise DataError(f"{cams_path}: im_id {im_id}: depth_scale must be a positive number, got {scale!r}")
+                has_depth = depth.is_file()
+                self._items.append(
+                    (scene, scene_id, im_id, image, K, depth if has_depth else None, float(scale) / 1000.0)
+                )
         if not self._items:
             raise DataError(f"{self.root}: scene_camera.json lists no images")
 
@@ -348,7 +362,7 @@ class BopFrameSource(FrameSource):
     def __iter__(self) -> Iterator[Frame]:
         gt_scene: Path | None = None
         gt: dict[int, tuple[ObjectPose, ...]] = {}
-        for index, (scene, scene_id, im_id, image, K) in enumerate(self._items):
+        for index, (scene, scene_id, im_id, image, K, depth, depth_scale_m) in enumerate(self._items):
             if scene != gt_scene:  # one scene's ground truth in memory at a time
                 gt, gt_scene = self._scene_gt(scene), scene
             data = _read_bytes(image)
@@ -362,6 +376,9 @@ class BopFrameSource(FrameSource):
                 image_data=data,
                 gt=gt.get(im_id, ()),
                 source=str(image),
+                depth_format="png" if depth is not None else "",
+                depth_data=_read_bytes(depth) if depth is not None else b"",
+                depth_scale_m=depth_scale_m if depth is not None else 0.0,
             )
 
     def count(self) -> int:

@@ -24,9 +24,10 @@ from batchpose.correspondences import (
     top_k_pairs,
     vote_views,
 )
+from batchpose.depth import Surface, align_to_depth
 from batchpose.errors import BatchposeError, ImageError
 from batchpose.features import detect, detect_shapes, make_sift, to_gray
-from batchpose.frames import Camera, Frame, ObjectPose, decode_image
+from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image
 from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
@@ -125,6 +126,7 @@ class PoseEstimator:
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flip_cache: dict[str, list[np.ndarray]] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
+        self._surfaces: dict[str, Surface] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
         self._prev: dict | None = None
@@ -671,6 +673,45 @@ class PoseEstimator:
         }
         return [out[n] for n in obj_names]
 
+    def _use_depth(self, frame: Frame, records: list[PoseRecord]) -> None:
+        """``depth.enabled``: check each found pose against the frame's depth image and align it to the depth
+        (:func:`batchpose.depth.align_to_depth`). Tracks keep following the RGB poses. A pose the depth
+        contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in ``reason``."""
+        todo = [r for r in records if r.ok and r.obj_name in self.models and self.renderer is not None]
+        if not todo:
+            return
+        t0 = time.perf_counter()
+        try:
+            depth = decode_depth(frame)
+        except ImageError as e:
+            log.warning("%s: depth image not used: %s", frame.frame_id, e)
+            for rec in todo:
+                rec.reason = f"depth image not used ({e}): RGB pose"
+            return
+        t_decode = (time.perf_counter() - t0) / len(todo)
+        for rec in todo:
+            t0 = time.perf_counter()
+            name = rec.obj_name
+            if name not in self._surfaces:
+                self._surfaces[name] = Surface.of(self.models[name].mesh)
+            _, rendered = self._render(name, rec.cam_from_model, frame.camera)
+            fit = align_to_depth(
+                rec.cam_from_model,
+                depth,
+                rendered,
+                frame.camera.K,
+                self._surfaces[name],
+                self.models[name].diameter_m,
+                self.conf.depth,
+            )
+            if fit.contradicted:
+                rec.status, rec.reason = "pnp_failed", fit.reason
+            elif fit.aligned:
+                rec.cam_from_model = fit.cam_from_model
+            else:
+                rec.reason = f"depth not used: {fit.reason}: RGB pose"
+            rec.timings["depth"] = t_decode + time.perf_counter() - t0
+
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
         """Estimate every object in a frame; never raises for bad input (failed records instead).
@@ -698,6 +739,8 @@ class PoseEstimator:
             t_decode = time.perf_counter() - t0
         if any(r.status in ("bad_image", "bad_camera", "error") for r in records):
             self.reset_tracks()  # a frame that could not be read breaks every track
+        elif self.conf.depth.enabled and frame.has_depth:
+            self._use_depth(frame, records)
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

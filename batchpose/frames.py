@@ -26,6 +26,8 @@ RAW_ENCODINGS = {
     "16UC1": (1, np.uint16),
 }
 COMPRESSED_FORMATS = ("png", "jpeg")
+#: Encodings of a depth image understood by :func:`decode_depth`: 16-bit PNG, or raw 16-bit / 32-bit float.
+DEPTH_ENCODINGS = ("png", "16UC1", "mono16", "32FC1")
 
 
 @dataclass(frozen=True)
@@ -90,6 +92,11 @@ class Frame:
         raw_step: bytes per row for raw encodings (0 for compressed).
         gt: ground-truth poses present in the frame (empty when unknown).
         source: where the frame came from (file path or "file.mcap:/topic"), for error messages.
+        depth_format: encoding of a depth image registered to the colour image (one of
+            :data:`DEPTH_ENCODINGS`), "" when the frame has none.
+        depth_data: the depth image's encoded or raw bytes.
+        depth_scale_m: metres per depth unit (YCB-Video: 1e-4; float depth in metres: 1.0).
+        depth_step: bytes per row of a raw depth image (0: packed, or compressed).
     """
 
     frame_id: str
@@ -102,6 +109,14 @@ class Frame:
     raw_step: int = 0
     gt: tuple[ObjectPose, ...] = ()
     source: str = ""
+    depth_format: str = ""
+    depth_data: bytes = b""
+    depth_scale_m: float = 0.0
+    depth_step: int = 0
+
+    @property
+    def has_depth(self) -> bool:
+        return bool(self.depth_format)
 
 
 def decode_image(frame: Frame) -> np.ndarray:
@@ -162,3 +177,49 @@ def decode_image(frame: Frame) -> np.ndarray:
     if rgb.shape[0] == 0 or rgb.shape[1] == 0:
         raise ImageError(f"{where}: image has zero size {rgb.shape[1]}x{rgb.shape[0]}")
     return rgb
+
+
+def decode_depth(frame: Frame) -> np.ndarray | None:
+    """Decode a frame's depth image, registered to its colour image.
+
+    Returns:
+        (H, W) float32 depth in metres (z along the optical axis), 0 where the sensor has no reading;
+        None when the frame has no depth image.
+
+    Raises:
+        ImageError: empty or undecodable data, an encoding not in :data:`DEPTH_ENCODINGS`, a depth scale
+            that is not positive, or a size that differs from the colour image's calibration.
+    """
+    if not frame.depth_format:
+        return None
+    where = f"{frame.source or frame.frame_id} (depth)"
+    fmt = frame.depth_format
+    if fmt not in DEPTH_ENCODINGS:
+        raise ImageError(f"{where}: unsupported depth encoding {fmt!r} (expected one of {', '.join(DEPTH_ENCODINGS)})")
+    if not frame.depth_data:
+        raise ImageError(f"{where}: depth image is empty (0 bytes)")
+    if not (np.isfinite(frame.depth_scale_m) and frame.depth_scale_m > 0):
+        raise ImageError(
+            f"{where}: depth scale must be a positive number of metres per unit, got {frame.depth_scale_m}"
+        )
+    w, h = frame.camera.width, frame.camera.height
+    if fmt == "png":
+        img = cv2.imdecode(np.frombuffer(frame.depth_data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None or img.ndim != 2 or img.dtype != np.uint16:
+            got = "undecodable" if img is None else f"{img.dtype} with {1 if img.ndim == 2 else img.shape[2]} channels"
+            raise ImageError(f"{where}: depth PNG must be single-channel 16-bit, got {got}")
+    else:
+        dtype = np.float32 if fmt == "32FC1" else np.uint16
+        itemsize = np.dtype(dtype).itemsize
+        step = frame.depth_step or w * itemsize
+        if step < w * itemsize or step * h > len(frame.depth_data):
+            raise ImageError(
+                f"{where}: raw {fmt} depth of {w}x{h} (step {step}) needs {step * h} bytes, got {len(frame.depth_data)}"
+            )
+        rows = np.frombuffer(frame.depth_data[: step * h], dtype=np.uint8).reshape(h, step)
+        img = rows[:, : w * itemsize].copy().view(dtype).reshape(h, w)
+    if img.shape != (h, w):
+        raise ImageError(f"{where}: depth image is {img.shape[1]}x{img.shape[0]}, the colour image {w}x{h}")
+    depth = img.astype(np.float32) * np.float32(frame.depth_scale_m)
+    depth[~np.isfinite(depth) | (depth < 0)] = 0.0
+    return depth

@@ -2,7 +2,8 @@
 
 Table columns (one row per (frame, object)):
     frame_id (str), scene_id (int), im_id (int), stamp_ns (int), obj_name (str), obj_id (int),
-    status (str, one of :data:`STATUSES`), reason (str, "" when ok),
+    status (str, one of :data:`STATUSES`), reason (str: why it failed; for an ok pose "" or a note, e.g. why
+    ``depth.enabled`` left the RGB pose as it was),
     R (list of 9 float, row-major, model->camera), t_m (list of 3 float, metres; NaN when failed),
     confidence (float in [0, 1]), n_matches (int), n_inliers (int), median_residual_px (float),
     templates (str, space-separated template view ids), inliers_px (list of float, x0 y0 x1 y1 ...),
@@ -18,7 +19,7 @@ import numpy as np
 
 STATUSES = ("ok", "too_few_matches", "pnp_failed", "bad_image", "bad_camera", "error")
 #: Per-(frame, object) timing stages, in pipeline order.
-STAGES = ("decode", "track", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "seed")
+STAGES = ("decode", "track", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "seed", "depth")
 
 
 @dataclass

@@ -1,0 +1,167 @@
+"""Align an RGB pose to a registered depth image (``depth.enabled``; batchpose's addition to GNC-Pose).
+
+A monocular pose is weakest along the viewing ray: the object's image size fixes only the ratio of its size
+to its distance, and on real YCB-Video frames our RGB poses sit 1-3 % too far (reports/ACCURACY.md). Where
+the log has a depth image registered to the colour image, each pose the RGB estimator finds is
+
+1. checked: the mesh is rendered at the pose; where the sensor sees *past* the rendered surface on most of
+   the silhouette, the pose puts the object where there is none (readings nearer than the surface are
+   occluders and do not count); where almost no reading is near the rendered surface, the object is seen
+   nowhere there (e.g. a pose far behind the things in front of it);
+2. aligned: sensor points on and around the silhouette are registered to points sampled on the mesh by
+   robust point-to-plane ICP (Huber weights, a 3D distance gate narrowing from ``gate_m`` to
+   ``gate_final_m``, Levenberg damping so that what the depth cannot see, such as a can's turn about its
+   axis, stays as the RGB estimate had it). One render per pose.
+
+Sensor points are back-projected with K alone (no distortion model), as the renderer draws.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from batchpose.config import DepthConfig
+
+#: Surface points sampled per mesh for the alignment.
+SURFACE_POINTS = 4000
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Points sampled evenly on a mesh (model frame, metres), their face normals and a k-d tree over them."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    tree: cKDTree
+
+    @classmethod
+    def of(cls, mesh: trimesh.Trimesh, n: int = SURFACE_POINTS, seed: int = 0) -> Surface:
+        points, face = trimesh.sample.sample_surface(mesh, n, seed=seed)
+        points = np.asarray(points, dtype=np.float64)
+        return cls(points, np.asarray(mesh.face_normals[face], dtype=np.float64), cKDTree(points))
+
+
+@dataclass
+class DepthFit:
+    """The outcome for one pose.
+
+    Attributes:
+        cam_from_model: the aligned pose (the input pose when not aligned).
+        aligned: the alignment was made and kept.
+        contradicted: the depth shows the pose is wrong (see :func:`align_to_depth`).
+        see_through: fraction of the silhouette's pixels with a reading where the sensor sees past the surface.
+        agree: fraction of them whose reading is within a quarter of the diameter of the rendered surface.
+        n_pixels: object pixels the last ICP iteration used.
+        reason: why the pose was not aligned or is contradicted ("" otherwise).
+    """
+
+    cam_from_model: np.ndarray
+    aligned: bool = False
+    contradicted: bool = False
+    see_through: float = 0.0
+    agree: float = 0.0
+    n_pixels: int = 0
+    reason: str = ""
+
+
+def _back_project(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
+    return np.stack([(xs - K[0, 2]) * z / K[0, 0], (ys - K[1, 2]) * z / K[1, 1], z], axis=1)
+
+
+def align_to_depth(
+    T: np.ndarray,
+    depth_m: np.ndarray,
+    rendered_depth_m: np.ndarray,
+    K: np.ndarray,
+    surface: Surface,
+    diameter_m: float,
+    conf: DepthConfig,
+) -> DepthFit:
+    """Check pose ``T`` against the sensor depth and align it (see the module docstring).
+
+    Args:
+        T: (4, 4) model->camera pose from the RGB estimate.
+        depth_m: (H, W) sensor depth in metres, 0 where there is no reading.
+        rendered_depth_m: (H, W) the mesh's depth rendered at ``T`` in the same camera, 0 off the object.
+        K: (3, 3) intrinsics of both images.
+        surface: the mesh's :class:`Surface`.
+        diameter_m: the object's diameter (limits how far an alignment may move it).
+    """
+    fit = DepthFit(np.asarray(T, dtype=np.float64).copy())
+    sil = rendered_depth_m > 0
+    seen = sil & (depth_m > 0)
+    if seen.sum() < conf.min_pixels:
+        fit.reason = f"{int(seen.sum())} of the object's pixels have a depth reading, need {conf.min_pixels}"
+        return fit
+    gap = depth_m[seen] - rendered_depth_m[seen]
+    fit.see_through = float(np.mean(gap > conf.gate_m))
+    fit.agree = float(np.mean(np.abs(gap) < max(conf.gate_m, 0.25 * diameter_m)))
+    if fit.see_through > conf.max_see_through:
+        fit.contradicted = True
+        fit.reason = (
+            f"the depth image contradicts the pose: on {100 * fit.see_through:.0f}% of the object's pixels the "
+            f"sensor sees more than {100 * conf.gate_m:.0f} cm past it"
+        )
+    elif fit.agree < conf.min_agree:
+        fit.contradicted = True
+        fit.reason = (
+            f"the depth image contradicts the pose: only {100 * fit.agree:.0f}% of the object's pixels have a "
+            f"reading within {100 * max(conf.gate_m, 0.25 * diameter_m):.0f} cm of its surface"
+        )
+    if fit.contradicted:
+        return fit
+    # Candidate pixels: the silhouette grown by a few pixels (the RGB pose may be off by that much).
+    grow = int(np.ceil(0.03 * np.sqrt(sil.sum()))) + 2
+    near = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1,) * 2)) > 0
+    ys, xs = np.nonzero(near & (depth_m > 0))
+    if len(xs) > 2 * conf.max_points:  # before the gate removes some: keep twice the budget
+        keep = np.linspace(0, len(xs) - 1, 2 * conf.max_points).astype(int)
+        ys, xs = ys[keep], xs[keep]
+    P = _back_project(xs.astype(np.float64), ys.astype(np.float64), depth_m[ys, xs].astype(np.float64), K)
+    T_new = fit.cam_from_model.copy()
+    n_used = 0
+    for it in range(conf.iterations):
+        gate = conf.gate_m + (conf.gate_final_m - conf.gate_m) * it / max(conf.iterations - 1, 1)
+        R, t = T_new[:3, :3], T_new[:3, 3]
+        q = (P - t) @ R  # sensor points in the model frame
+        dist, idx = surface.tree.query(q, distance_upper_bound=gate)
+        use = np.isfinite(dist)
+        if use.sum() < conf.min_pixels:
+            fit.reason = f"{int(use.sum())} depth pixels within {100 * gate:.1f} cm of the mesh, need {conf.min_pixels}"
+            return fit
+        q, idx = q[use], idx[use]
+        if len(q) > conf.max_points:
+            keep = np.linspace(0, len(q) - 1, conf.max_points).astype(int)
+            q, idx = q[keep], idx[keep]
+        n = surface.normals[idx]
+        r = np.einsum("ij,ij->i", q - surface.points[idx], n)
+        J = np.hstack([np.cross(q, n), n])  # d r / d (rotation, translation) of the model-frame points
+        scale = 1.4826 * np.median(np.abs(r)) + 1e-4
+        w = 1.0 / np.maximum(1.0, np.abs(r) / (1.5 * scale))  # Huber
+        A = (J * w[:, None]).T @ J
+        A += conf.damping * np.trace(A) / 6.0 * np.eye(6)
+        step = -np.linalg.solve(A, (J * w[:, None]).T @ r)
+        D = np.eye(4)
+        D[:3, :3] = cv2.Rodrigues(step[:3])[0]
+        D[:3, 3] = step[3:]
+        T_new = T_new @ np.linalg.inv(D)  # the points move by D in the model frame: the model by D^-1
+        n_used = len(q)
+        if np.linalg.norm(step[3:]) < 1e-5 and np.linalg.norm(step[:3]) < 1e-5:
+            break
+    fit.n_pixels = n_used
+    c = surface.points.mean(axis=0)  # the object's centre moves by this much
+    moved = np.linalg.norm((T_new[:3, :3] - fit.cam_from_model[:3, :3]) @ c + T_new[:3, 3] - fit.cam_from_model[:3, 3])
+    turned = np.degrees(np.linalg.norm(cv2.Rodrigues(T_new[:3, :3] @ fit.cam_from_model[:3, :3].T)[0]))
+    if moved > conf.max_shift * diameter_m or turned > conf.max_turn_deg:
+        fit.reason = (
+            f"the alignment to the depth moved the object {100 * moved:.1f} cm and turned it {turned:.0f} deg "
+            f"(limits {100 * conf.max_shift * diameter_m:.1f} cm, {conf.max_turn_deg:.0f} deg): not used"
+        )
+        return fit
+    fit.cam_from_model, fit.aligned = T_new, True
+    return fit

@@ -1,0 +1,204 @@
+"""Depth images (``depth.enabled``): decoding, the readers, the check and alignment of a pose, the estimator."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import scipy.io
+
+from batchpose.config import ConfigError, DepthConfig, EstimatorConfig, from_dict, load_estimator_config
+from batchpose.datasets import BopFrameSource, YcbvFrameSource
+from batchpose.depth import Surface, align_to_depth
+from batchpose.errors import ImageError
+from batchpose.estimate import PoseEstimator
+from batchpose.frames import Camera, Frame, decode_depth
+from batchpose.render import get_renderer
+from tests.conftest import K_SYN
+from tests.test_datasets import make_bop, make_ycbv
+from tests.test_estimate_synthetic import compose
+
+CAM = Camera(K_SYN, 640, 480)
+
+
+def _frame(depth_format: str, data: bytes, scale: float = 1e-4, step: int = 0, w: int = 4, h: int = 3) -> Frame:
+    return Frame(
+        "f", 0, 0, 0, Camera(np.eye(3), w, h), "png", b"x",
+        depth_format=depth_format, depth_data=data, depth_scale_m=scale, depth_step=step,
+    )  # fmt: skip
+
+
+def test_decode_depth_encodings():
+    mm = np.arange(12, dtype=np.uint16).reshape(3, 4) * 1000
+    png = cv2.imencode(".png", mm)[1].tobytes()
+    np.testing.assert_allclose(decode_depth(_frame("png", png, scale=1e-3)), mm / 1000.0, rtol=1e-6)
+    padded = np.zeros((3, 6), np.uint16)  # rows of 12 bytes, 8 used
+    padded[:, :4] = mm
+    np.testing.assert_allclose(decode_depth(_frame("16UC1", padded.tobytes(), 1e-3, step=12)), mm / 1000.0, rtol=1e-6)
+    metres = (mm / 1000.0).astype(np.float32)
+    metres[0, 1] = np.nan  # no reading
+    out = decode_depth(_frame("32FC1", metres.tobytes(), 1.0))
+    assert out.dtype == np.float32 and out[0, 1] == 0.0 and out[2, 3] == pytest.approx(11.0)
+    assert decode_depth(_frame("", b"")) is None
+
+
+@pytest.mark.parametrize(
+    "frame, match",
+    [
+        (_frame("32FC3", b"x" * 144), "unsupported depth encoding '32FC3'"),
+        (_frame("png", b""), "depth image is empty"),
+        (_frame("png", b"not a png"), "depth PNG must be single-channel 16-bit, got undecodable"),
+        (
+            _frame("png", cv2.imencode(".png", np.zeros((3, 4), np.uint8))[1].tobytes()),
+            "single-channel 16-bit, got uint8",
+        ),
+        (_frame("png", cv2.imencode(".png", np.zeros((5, 4), np.uint16))[1].tobytes()), "depth image is 4x5"),
+        (_frame("16UC1", b"\0" * 20), r"raw 16UC1 depth of 4x3 \(step 8\) needs 24 bytes, got 20"),
+        (_frame("16UC1", b"\0" * 24, scale=0.0), "depth scale must be a positive number"),
+    ],
+)
+def test_decode_depth_rejects_bad_input(frame, match):
+    with pytest.raises(ImageError, match=match):
+        decode_depth(frame)
+
+
+def test_ycbv_and_bop_readers_attach_depth(tmp_path):
+    make_ycbv(tmp_path / "ycbv")
+    mm = np.full((24, 32), 12345, np.uint16)
+    cv2.imwrite(str(tmp_path / "ycbv/data/0001/000001-depth.png"), mm)
+    meta = tmp_path / "ycbv/data/0001/000001-meta.mat"
+    m = scipy.io.loadmat(str(meta))
+    scipy.io.savemat(meta, {k: v for k, v in m.items() if not k.startswith("__")} | {"factor_depth": 10000})
+    frames = list(YcbvFrameSource(tmp_path / "ycbv"))
+    assert frames[0].has_depth and not frames[1].has_depth  # the second frame has no -depth.png
+    np.testing.assert_allclose(decode_depth(frames[0]), 1.2345, rtol=1e-6)
+
+    make_bop(tmp_path / "bop")
+    (tmp_path / "bop/000048/depth").mkdir()
+    cv2.imwrite(str(tmp_path / "bop/000048/depth/000001.png"), mm)  # depth_scale 0.1: 0.1 mm per unit
+    frames = list(BopFrameSource(tmp_path / "bop"))
+    assert frames[0].has_depth and not frames[1].has_depth
+    np.testing.assert_allclose(decode_depth(frames[0]), 1.2345, rtol=1e-6)
+    cams = json.loads((tmp_path / "bop/000048/scene_camera.json").read_text())
+    cams["1"]["depth_scale"] = -1
+    (tmp_path / "bop/000048/scene_camera.json").write_text(json.dumps(cams))
+    with pytest.raises(Exception, match="depth_scale must be a positive number, got -1"):
+        BopFrameSource(tmp_path / "bop")
+
+
+def test_depth_config_is_checked():
+    with pytest.raises(ConfigError, match="depth.gate_final_m must be positive and at most gate_m"):
+        load_estimator_config({"depth": {"gate_m": 0.01, "gate_final_m": 0.02}})
+    with pytest.raises(ConfigError, match="unknown key gate"):
+        from_dict(EstimatorConfig, {"depth": {"gate": 0.1}})
+
+
+def _scene_depth(model, T, wall_m: float = 1.5) -> np.ndarray:
+    """The mesh at T in front of a wall ``wall_m`` away, as a depth sensor would see it."""
+    _, d = get_renderer().render(model.content_hash, model.mesh, T, K_SYN, 640, 480)
+    return np.where(d > 0, d, wall_m).astype(np.float32)
+
+
+def _pose(model) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.array([2.2, 0.4, -0.3]))[0]
+    T[:3, 3] = np.array([0.02, -0.01, 0.8]) - T[:3, :3] @ model.center_m
+    return T
+
+
+def _moved(T, model, along_ray: float, turn_deg: float) -> np.ndarray:
+    """T with the object's centre moved ``along_ray`` (fraction) along its viewing ray and turned."""
+    out = T.copy()
+    c = T[:3, :3] @ model.center_m + T[:3, 3]
+    R = cv2.Rodrigues(np.deg2rad([turn_deg, 0.0, 0.0]))[0] @ T[:3, :3]
+    out[:3, :3] = R
+    out[:3, 3] = c * (1 + along_ray) - R @ model.center_m
+    return out
+
+
+def _add_mm(model, A, B) -> float:
+    pts = np.asarray(model.mesh.vertices)[::8]
+    return 1000 * float(np.linalg.norm((pts @ A[:3, :3].T + A[:3, 3]) - (pts @ B[:3, :3].T + B[:3, 3]), axis=1).mean())
+
+
+def test_alignment_recovers_the_distance_a_monocular_pose_gets_wrong(cracker_model):
+    T = _pose(cracker_model)
+    depth = _scene_depth(cracker_model, T)
+    rng = np.random.default_rng(0)
+    noisy = depth + rng.normal(0, 0.002, depth.shape).astype(np.float32)  # 2 mm sensor noise
+    noisy[rng.random(depth.shape) < 0.1] = 0  # and holes
+    start = _moved(T, cracker_model, 0.04, 4.0)  # 3.2 cm too far, turned 4 degrees
+    _, rendered = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, start, K_SYN, 640, 480)
+    surface = Surface.of(cracker_model.mesh)
+    fit = align_to_depth(start, noisy, rendered, K_SYN, surface, cracker_model.diameter_m, DepthConfig())
+    assert fit.aligned and not fit.contradicted and fit.reason == ""
+    assert _add_mm(cracker_model, start, T) > 25
+    assert _add_mm(cracker_model, fit.cam_from_model, T) < 2.0
+    assert fit.see_through < 0.2 and fit.agree > 0.9
+
+
+def test_poses_the_depth_contradicts(cracker_model):
+    T = _pose(cracker_model)
+    surface, conf, r = Surface.of(cracker_model.mesh), DepthConfig(), get_renderer()
+
+    def fit_at(T_est, depth):
+        _, rendered = r.render(cracker_model.content_hash, cracker_model.mesh, T_est, K_SYN, 640, 480)
+        return align_to_depth(T_est, depth, rendered, K_SYN, surface, cracker_model.diameter_m, conf)
+
+    wall = np.full((480, 640), 1.5, np.float32)  # the object is not there at all
+    floating = fit_at(T, wall)
+    assert floating.contradicted and "sees more than 3 cm past it" in floating.reason
+    behind = fit_at(_moved(T, cracker_model, 1.2, 0.0), _scene_depth(cracker_model, T, wall_m=1.0))
+    assert behind.contradicted and "only 0% of the object's pixels have a reading within" in behind.reason
+    blind = fit_at(T, np.zeros((480, 640), np.float32))  # no readings: nothing to say
+    assert (
+        not blind.contradicted and not blind.aligned and "0 of the object's pixels have a depth reading" in blind.reason
+    )
+
+
+def test_estimator_aligns_its_poses_to_the_depth_image(cracker_model, cracker_library):
+    """The real-frame case: the image shows the object 4 % farther than the depth does (the mesh and the
+    real object differ in size). RGB alone finds the image's pose; with depth.enabled, the depth's."""
+    T = _pose(cracker_model)
+    T_image = _moved(T, cracker_model, 0.04, 0.0)
+    rgb = compose(np.random.default_rng(1), cracker_model, T_image)
+    depth_mm = (_scene_depth(cracker_model, T) * 1000).astype(np.uint16)
+
+    def frame(depth_bytes: bytes) -> Frame:
+        return Frame(
+            "syn", 0, 0, 0, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
+            depth_format="png", depth_data=depth_bytes, depth_scale_m=0.001,
+        )  # fmt: skip
+
+    good = frame(cv2.imencode(".png", depth_mm)[1].tobytes())
+    results = {}
+    for enabled in (False, True):
+        conf = load_estimator_config({"depth": {"enabled": enabled}, "track": {"enabled": False}})
+        est = PoseEstimator(
+            conf,
+            {cracker_model.name: cracker_library},
+            models={cracker_model.name: cracker_model},
+            renderer=get_renderer(),
+        )
+        (rec,) = est.estimate_frame(good, [cracker_model.name])
+        assert rec.ok
+        results[enabled] = _add_mm(cracker_model, rec.cam_from_model, T)
+        if enabled:
+            assert rec.timings["depth"] > 0 and rec.reason == ""
+            (bad,) = est.estimate_frame(frame(b"corrupt"), [cracker_model.name])
+            assert bad.ok and bad.reason.startswith("depth image not used (syn (depth): depth PNG must be")
+    assert results[False] > 20  # ~3 cm: where the image puts it
+    assert results[True] < 3
+
+
+def test_shared_ycbv_dev_depth_frames_decode():
+    root = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_dev"
+    if not root.is_dir():
+        pytest.skip(f"shared YCB-Video dev data not at {root}")
+    f = next(iter(YcbvFrameSource(root)))
+    d = decode_depth(f)
+    assert f.depth_scale_m == pytest.approx(1e-4) and d.shape == (480, 640)
+    assert 0.3 < float(np.median(d[d > 0])) < 3.0  # metres
