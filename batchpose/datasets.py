@@ -51,7 +51,7 @@ SPEC_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "ycbv": (("format", "root"), ()),
     "bop": (("format", "root"), ("obj_names",)),
     "images": (("format", "root"), ("intrinsics",)),
-    "mcap": (("format", "path"), ("image_topic", "calibration_topic")),
+    "mcap": (("format", "path"), ("image_topic", "calibration_topic", "depth_topic")),
 }
 INTRINSICS_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
@@ -493,8 +493,8 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
     Args:
         spec: ``{format: ycbv, root: PATH}``, ``{format: bop, root: PATH, obj_names: {1: name}}``,
             ``{format: images, root: PATH, intrinsics: PATH}`` (intrinsics default ``ROOT/intrinsics.yaml``)
-            or ``{format: mcap, path: PATH, image_topic: TOPIC, calibration_topic: TOPIC}`` (topics
-            optional).
+            or ``{format: mcap, path: PATH, image_topic: TOPIC, calibration_topic: TOPIC, depth_topic: TOPIC}``
+            (topics optional; no depth topic: no depth).
         base_dir: folder that relative paths are resolved against (the manifest's folder).
 
     Raises:
@@ -534,9 +534,12 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
         return ImagesFrameSource(resolve("root"), resolve("intrinsics") if spec.get("intrinsics") else None)
     from batchpose.mcap_io import McapFrameSource  # only mcap_io imports mcap
 
-    for key in ("image_topic", "calibration_topic"):
+    for key in ("image_topic", "calibration_topic", "depth_topic"):
         if spec.get(key) is not None and not isinstance(spec[key], str):
             raise ConfigError(f"frames.{key}: expected a topic name string, got {spec[key]!r}")
     return McapFrameSource(
-        resolve("path"), image_topic=spec.get("image_topic"), calibration_topic=spec.get("calibration_topic")
+        resolve("path"),
+        image_topic=spec.get("image_topic"),
+        calibration_topic=spec.get("calibration_topic"),
+        depth_topic=spec.get("depth_topic"),
     )

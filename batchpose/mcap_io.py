@@ -6,7 +6,8 @@ Reading (:class:`McapFrameSource`): images from ``foxglove.CompressedImage`` (jp
 ``sensor_msgs/msg/CameraInfo``. Each image uses the latest calibration logged at or before it (images
 logged before the first calibration use the first one, with a warning). Image bytes are never decoded
 here: ``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
-stride.
+stride. With a ``depth_topic``, each image gets the depth image (16UC1 / mono16 in mm, 32FC1 in m, or a
+16-bit PNG in mm) whose header stamp is nearest its own, within :data:`DEPTH_MAX_GAP_NS`.
 
 Writing: :func:`write_frames_mcap` turns frames into a log; :func:`write_poses_mcap` copies every input
 message byte for byte and adds the estimates. Topics written by batchpose:
@@ -16,6 +17,8 @@ topic                             schema                          content
 ================================  ==============================  ===========================================
 ``/camera/image``                 foxglove.CompressedImage        PNG/JPEG bytes as stored (RawImage for raw)
 ``/camera/calibration``           foxglove.CameraCalibration      K, R = I, P = [K | 0], D, model, size
+``/camera/depth``                 foxglove.RawImage               16UC1 depth in mm registered to the image
+                                                                  (``batchpose convert`` of data with depth)
 ``/ground_truth/poses``           batchpose.GroundTruthPoses      JSON, see :data:`GT_JSON_SCHEMA`
 ``/batchpose/scene``              foxglove.SceneUpdate            one message at the start: each object's
                                                                   mesh (binary glTF) locked to
@@ -33,6 +36,7 @@ time the calibration and ground truth are written before the image.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -75,7 +79,7 @@ from scipy.spatial.transform import Rotation
 
 from batchpose.datasets import FrameSource, image_size, one_line
 from batchpose.errors import CameraError, ConfigError, DataError
-from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose
+from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth
 from batchpose.poses import row_cam_from_model
 
 try:  # zstd is how chunks are usually compressed; its errors mean a corrupt chunk
@@ -94,6 +98,11 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 IMAGE_TOPIC = "/camera/image"
 CALIBRATION_TOPIC = "/camera/calibration"
 GT_TOPIC = "/ground_truth/poses"
+DEPTH_TOPIC = "/camera/depth"
+#: Depth images are paired with the colour image whose header stamp is nearest, within this.
+DEPTH_MAX_GAP_NS = 20_000_000
+#: Metres per unit of a depth encoding (REP 118: 16-bit depth in millimetres, float depth in metres).
+DEPTH_UNITS_M = {"16UC1": 0.001, "mono16": 0.001, "png": 0.001, "32FC1": 1.0}
 CAMERA_FRAME_ID = "camera"
 OUTPUT_PREFIX = "/batchpose/"
 SCENE_TOPIC = "/batchpose/scene"
@@ -298,6 +307,14 @@ def _gt_poses(obj: Mapping[str, Any]) -> tuple[ObjectPose, ...]:
 # ------------------------------------------------------------------------------------------ reading
 
 
+@dataclass(frozen=True)
+class _PendingFrame:
+    """A frame waiting for its depth image, and its image's header stamp (what depth is paired by)."""
+
+    frame: Frame
+    stamp_ns_header: int
+
+
 class McapFrameSource(FrameSource):
     """Frames of one image topic of an MCAP file, read lazily in log-time order.
 
@@ -307,6 +324,8 @@ class McapFrameSource(FrameSource):
             beside it preferred), logged.
         calibration_topic: calibration topic; default: the calibration topic beside the image topic
             (same namespace: ``/cam/image`` <-> ``/cam/calibration`` or ``/cam/camera_info``).
+        depth_topic: an image topic of depth registered to the images (optional; see the module docstring).
+            An image without a depth image within :data:`DEPTH_MAX_GAP_NS` has none.
 
     Frames: ``frame_id`` "mcap:<log_time_ns>", ``scene_id`` 0, ``im_id`` running index, ``stamp_ns`` =
     log time; when ``/ground_truth/poses`` holds a message at the image's log time (files written by
@@ -321,7 +340,13 @@ class McapFrameSource(FrameSource):
         CameraError: no calibration topic for the image topic, or it has no messages.
     """
 
-    def __init__(self, path: Path, image_topic: str | None = None, calibration_topic: str | None = None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        image_topic: str | None = None,
+        calibration_topic: str | None = None,
+        depth_topic: str | None = None,
+    ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise DataError(f"{self.path}: MCAP file does not exist")
@@ -346,6 +371,7 @@ class McapFrameSource(FrameSource):
         else:
             self.truncated = tail != MCAP_MAGIC
             self._scan_stream()
+        self.depth_topic = self._check_depth_topic(depth_topic)
         self.image_topic = self._choose_image_topic(image_topic)
         self.calibration_topic = self._choose_calibration_topic(calibration_topic)
         self.gt_topic = GT_TOPIC if GT_TOPIC in self._topics() else None
@@ -455,22 +481,34 @@ class McapFrameSource(FrameSource):
                 best, best_len = topic, len(ns)
         return best
 
+    def _image_type_topic(self, wanted: str, what: str) -> str:
+        """``wanted`` when it is a topic of an image type, else DataError naming ``what`` it was meant as."""
+        topics = self._topics()
+        if wanted not in topics:
+            images = [t for t, s in topics.items() if s in IMAGE_SCHEMAS]
+            raise DataError(
+                f"{self.path}: {what} topic {wanted!r} not found "
+                f"(image topics: {', '.join(images) or 'none'}; all topics: {', '.join(topics) or 'none'})"
+            )
+        if topics[wanted] not in IMAGE_SCHEMAS:
+            raise DataError(
+                f"{self.path}:{wanted}: schema {topics[wanted]!r} is not an image type "
+                f"(expected one of {', '.join(IMAGE_SCHEMAS)})"
+            )
+        return wanted
+
+    def _check_depth_topic(self, wanted: str | None) -> str | None:
+        return None if wanted is None else self._image_type_topic(wanted, "depth")
+
     def _choose_image_topic(self, wanted: str | None) -> str:
         topics = self._topics()
         if wanted is not None:
-            if wanted not in topics:
-                images = [t for t, s in topics.items() if s in IMAGE_SCHEMAS]
-                raise DataError(
-                    f"{self.path}: image topic {wanted!r} not found "
-                    f"(image topics: {', '.join(images) or 'none'}; all topics: {', '.join(topics) or 'none'})"
-                )
-            if topics[wanted] not in IMAGE_SCHEMAS:
-                raise DataError(
-                    f"{self.path}:{wanted}: schema {topics[wanted]!r} is not an image type "
-                    f"(expected one of {', '.join(IMAGE_SCHEMAS)})"
-                )
-            return wanted
-        images = [t for t, s in topics.items() if s in IMAGE_SCHEMAS and self._topic_count(t) != 0]
+            return self._image_type_topic(wanted, "image")
+        images = [
+            t
+            for t, s in topics.items()
+            if s in IMAGE_SCHEMAS and self._topic_count(t) != 0 and t != self.depth_topic and "depth" not in t.lower()
+        ]
         if not images:
             listing = ", ".join(f"{t} ({s or 'no schema'})" for t, s in topics.items())
             raise DataError(
@@ -642,8 +680,47 @@ class McapFrameSource(FrameSource):
     # -- FrameSource
 
     def __iter__(self) -> Iterator[Frame]:
+        if self.depth_topic is None:
+            yield from self._frames()
+            return
+        # One frame waits for its depth image: it may be logged just after the colour image.
+        pending: Frame | None = None
+        depths: dict[int, _Image] = {}
+        for item in self._frames(with_depth=True):
+            if isinstance(item, _Image):
+                depths[item.stamp_ns] = item
+                if pending is not None and item.stamp_ns >= pending.stamp_ns_header:
+                    yield self._with_depth(pending, depths)
+                    pending = None
+                continue
+            if pending is not None:
+                yield self._with_depth(pending, depths)
+            pending = item
+            depths = {k: v for k, v in depths.items() if k >= item.stamp_ns_header - DEPTH_MAX_GAP_NS}
+        if pending is not None:
+            yield self._with_depth(pending, depths)
+
+    @staticmethod
+    def _with_depth(pending: _PendingFrame, depths: dict[int, _Image]) -> Frame:
+        frame, stamp = pending.frame, pending.stamp_ns_header
+        if not depths:
+            return frame
+        best = min(depths, key=lambda k: abs(k - stamp))
+        if abs(best - stamp) > DEPTH_MAX_GAP_NS:
+            return frame
+        d = depths[best]
+        fmt = "16UC1" if d.fmt == "mono16" else d.fmt
+        return dataclasses.replace(
+            frame, depth_format=fmt, depth_data=d.data, depth_scale_m=DEPTH_UNITS_M.get(fmt, 1.0), depth_step=d.step
+        )
+
+    def _frames(self, with_depth: bool = False) -> Iterator[Any]:
+        """Frames in log-time order; with ``with_depth``, :class:`_PendingFrame` s and the depth topic's
+        :class:`_Image` s interleaved."""
         first = self.first_calibration()
         topics = [self.image_topic, self.calibration_topic] + ([self.gt_topic] if self.gt_topic else [])
+        if with_depth:
+            topics.append(self.depth_topic)
         source = f"{self.path}:{self.image_topic}"
         cal: _Calib | None = None
         gts: dict[int, Any] = {}
@@ -656,6 +733,9 @@ class McapFrameSource(FrameSource):
                 continue
             if channel.topic == self.gt_topic:
                 gts[t] = self.decode(schema, channel, message)
+                continue
+            if with_depth and channel.topic == self.depth_topic:
+                yield self.image(schema, channel, message)
                 continue
             if cal is None and not warned_early:
                 log.warning(
@@ -684,7 +764,7 @@ class McapFrameSource(FrameSource):
                 gts = {k: v for k, v in gts.items() if k >= t}
             dup = dup + 1 if t == last_t else 0
             last_t = t
-            yield Frame(
+            frame = Frame(
                 frame_id=f"mcap:{t}" + (f"#{dup}" if dup else ""),
                 scene_id=int(gt.get("scene_id", 0)) if gt else 0,
                 im_id=int(gt.get("im_id", index)) if gt else index,
@@ -696,6 +776,7 @@ class McapFrameSource(FrameSource):
                 gt=_gt_poses(gt) if gt else (),
                 source=source,
             )
+            yield _PendingFrame(frame, img.stamp_ns) if with_depth else frame
             index += 1
 
     def count(self) -> int:
@@ -838,6 +919,19 @@ def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: l
         )
     _timestamp(img.timestamp, t)
     out.proto(IMAGE_TOPIC, img, t)
+    depth = decode_depth(frame)
+    if depth is not None:  # after the image: its channel must not come first (readers take the first image topic)
+        mm = np.clip(np.rint(depth * 1000.0), 0, 65535).astype("<u2")
+        d = RawImage(
+            frame_id=CAMERA_FRAME_ID,
+            width=int(mm.shape[1]),
+            height=int(mm.shape[0]),
+            encoding="16UC1",
+            step=int(2 * mm.shape[1]),
+            data=mm.tobytes(),
+        )
+        _timestamp(d.timestamp, t)
+        out.proto(DEPTH_TOPIC, d, t)
 
 
 def _tmp_path(out_path: Path) -> Path:

@@ -202,3 +202,77 @@ def test_shared_ycbv_dev_depth_frames_decode():
     d = decode_depth(f)
     assert f.depth_scale_m == pytest.approx(1e-4) and d.shape == (480, 640)
     assert 0.3 < float(np.median(d[d > 0])) < 3.0  # metres
+
+
+# ------------------------------------------------------------------------------------------------ MCAP
+
+
+def _raw_depth(t_header: int, mm: np.ndarray, encoding: str = "16UC1"):
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+    data = mm.astype("<u2") if encoding == "16UC1" else (mm / 1000.0).astype("<f4")
+    m = RawImage(
+        frame_id="cam",
+        width=mm.shape[1],
+        height=mm.shape[0],
+        encoding=encoding,
+        step=data.strides[0],
+        data=data.tobytes(),
+    )
+    m.timestamp.FromNanoseconds(t_header)
+    return m
+
+
+def test_mcap_depth_topic_pairs_by_header_stamp(tmp_path):
+    """Depth logged after its image and a few ms off is paired; a depth 40 ms away is not anyone's."""
+    from batchpose.datasets import open_frames
+    from tests.test_mcap_io import DT, T0, H, Log, W, _calib, _cimg, _enc, _img
+
+    rng = np.random.default_rng(0)
+    log_ = Log(tmp_path / "rgbd.mcap")
+    depths = {}
+    for i in range(4):
+        t = T0 + i * DT
+        log_.proto("/cam/calibration", _calib(t), t)
+        log_.proto("/cam/image", _cimg(t, _enc(_img(rng), ".png"), "png"), t)
+        mm = np.full((H, W), 500 + 100 * i, np.uint16)
+        if i == 2:  # this image's depth is 40 ms off: no pair
+            log_.proto("/cam/depth", _raw_depth(t + 40_000_000, mm), t + 3)
+        else:  # logged after the image, stamped 5 ms later (float metres for the last one)
+            log_.proto("/cam/depth", _raw_depth(t + 5_000_000, mm, "32FC1" if i == 3 else "16UC1"), t + 2)
+            depths[i] = mm / 1000.0
+    log_.close()
+    plain = list(open_frames({"format": "mcap", "path": str(tmp_path / "rgbd.mcap")}, tmp_path))
+    assert len(plain) == 4 and not any(f.has_depth for f in plain)  # no depth_topic: no depth
+    frames = list(
+        open_frames({"format": "mcap", "path": str(tmp_path / "rgbd.mcap"), "depth_topic": "/cam/depth"}, tmp_path)
+    )
+    assert [f.has_depth for f in frames] == [True, True, False, True]
+    assert [f.image_data for f in frames] == [f.image_data for f in plain]
+    for i, mm in depths.items():
+        np.testing.assert_allclose(decode_depth(frames[i]), mm, rtol=1e-6)
+    with pytest.raises(Exception, match="depth topic '/cam/nope' not found"):
+        open_frames({"format": "mcap", "path": str(tmp_path / "rgbd.mcap"), "depth_topic": "/cam/nope"}, tmp_path)
+
+
+def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
+    """A folder data set with depth converts to /camera/image + /camera/depth (16UC1, mm); reading the log
+    back picks the image topic, not the depth, and the depth round-trips to the millimetre."""
+    from batchpose.datasets import open_frames
+    from batchpose.mcap_io import write_frames_mcap
+
+    make_ycbv(tmp_path / "ycbv")
+    tenths = np.random.default_rng(3).integers(3000, 30000, (24, 32)).astype(np.uint16)  # YCB-Video: 0.1 mm
+    for rel in ("data/0001/000001", "data/0001/000002", "data_syn/000007"):
+        cv2.imwrite(str(tmp_path / f"ycbv/{rel}-depth.png"), tenths)
+        meta = tmp_path / f"ycbv/{rel}-meta.mat"
+        m = {k: v for k, v in scipy.io.loadmat(str(meta)).items() if not k.startswith("__")}
+        scipy.io.savemat(meta, m | {"factor_depth": 10000})
+    src = list(YcbvFrameSource(tmp_path / "ycbv"))
+    write_frames_mcap(src, tmp_path / "out.mcap")
+    spec = {"format": "mcap", "path": str(tmp_path / "out.mcap"), "depth_topic": "/camera/depth"}
+    back = list(open_frames(spec, tmp_path))
+    assert [f.image_data for f in back] == [f.image_data for f in src]
+    for f in back:
+        assert f.depth_format == "16UC1"
+        np.testing.assert_allclose(decode_depth(f), tenths / 10000.0, atol=0.5e-3 + 1e-6)  # to the millimetre
