@@ -11,7 +11,7 @@ the log has a depth image registered to the colour image, each pose the RGB esti
 2. aligned: sensor points on and around the silhouette are registered to points sampled on the mesh by
    robust point-to-plane ICP (Huber weights, a 3D distance gate narrowing from ``gate_m`` to
    ``gate_final_m``, Levenberg damping so that what the depth cannot see, such as a can's turn about its
-   axis, stays as the RGB estimate had it). One render per pose.
+   axis, stays as the RGB estimate had it), and checked again at the aligned pose. Two renders per pose.
 
 Sensor points are back-projected with K alone (no distortion model), as the renderer draws.
 """
@@ -56,7 +56,6 @@ class DepthFit:
         contradicted: the depth shows the pose is wrong (see :func:`align_to_depth`).
         see_through: fraction of the silhouette's pixels with a reading where the sensor sees past the surface.
         agree: fraction of them whose reading is within a quarter of the diameter of the rendered surface.
-        n_pixels: object pixels the last ICP iteration used.
         reason: why the pose was not aligned or is contradicted ("" otherwise).
     """
 
@@ -65,7 +64,6 @@ class DepthFit:
     contradicted: bool = False
     see_through: float = 0.0
     agree: float = 0.0
-    n_pixels: int = 0
     reason: str = ""
 
 
@@ -73,58 +71,87 @@ def _back_project(xs: np.ndarray, ys: np.ndarray, z: np.ndarray, K: np.ndarray) 
     return np.stack([(xs - K[0, 2]) * z / K[0, 0], (ys - K[1, 2]) * z / K[1, 1], z], axis=1)
 
 
+def _agreement(depth_m: np.ndarray, rendered_m: np.ndarray, diameter_m: float, conf: DepthConfig):
+    """(see_through, agree, reason): how the sensor's readings on the silhouette sit against the rendered
+    surface, and why that contradicts the pose ("" when it does not)."""
+    seen = (rendered_m > 0) & (depth_m > 0)
+    gap = depth_m[seen] - rendered_m[seen]
+    band = max(conf.gate_m, 0.25 * diameter_m)
+    see_through = float(np.mean(gap > conf.gate_m)) if gap.size else 0.0
+    agree = float(np.mean(np.abs(gap) < band)) if gap.size else 0.0
+    if see_through > conf.max_see_through:
+        return (
+            see_through,
+            agree,
+            (
+                f"the depth image contradicts the pose: on {100 * see_through:.0f}% of the object's pixels the "
+                f"sensor sees more than {100 * conf.gate_m:.0f} cm past it"
+            ),
+        )
+    if agree < conf.min_agree:
+        return (
+            see_through,
+            agree,
+            (
+                f"the depth image contradicts the pose: only {100 * agree:.0f}% of the object's pixels have a "
+                f"reading within {100 * band:.0f} cm of its surface"
+            ),
+        )
+    return see_through, agree, ""
+
+
 def align_to_depth(
     T: np.ndarray,
     depth_m: np.ndarray,
-    rendered_depth_m: np.ndarray,
+    render_depth,
     K: np.ndarray,
     surface: Surface,
     diameter_m: float,
     conf: DepthConfig,
 ) -> DepthFit:
-    """Check pose ``T`` against the sensor depth and align it (see the module docstring).
+    """Align pose ``T`` to the sensor depth and check the result (see the module docstring).
+
+    The check is made at the aligned pose when the alignment succeeds (a pose a few pixels off, which the
+    sensor partly sees past, is aligned first), else at ``T``.
 
     Args:
         T: (4, 4) model->camera pose from the RGB estimate.
         depth_m: (H, W) sensor depth in metres, 0 where there is no reading.
-        rendered_depth_m: (H, W) the mesh's depth rendered at ``T`` in the same camera, 0 off the object.
+        render_depth: callable(pose) -> (H, W) the mesh's depth rendered in the same camera, 0 off it.
         K: (3, 3) intrinsics of both images.
         surface: the mesh's :class:`Surface`.
         diameter_m: the object's diameter (limits how far an alignment may move it).
     """
     fit = DepthFit(np.asarray(T, dtype=np.float64).copy())
-    sil = rendered_depth_m > 0
-    seen = sil & (depth_m > 0)
-    if seen.sum() < conf.min_pixels:
-        fit.reason = f"{int(seen.sum())} of the object's pixels have a depth reading, need {conf.min_pixels}"
+    rendered = render_depth(fit.cam_from_model)
+    n_seen = int(((rendered > 0) & (depth_m > 0)).sum())
+    if n_seen < conf.min_pixels:
+        fit.reason = f"{n_seen} of the object's pixels have a depth reading, need {conf.min_pixels}"
         return fit
-    gap = depth_m[seen] - rendered_depth_m[seen]
-    fit.see_through = float(np.mean(gap > conf.gate_m))
-    fit.agree = float(np.mean(np.abs(gap) < max(conf.gate_m, 0.25 * diameter_m)))
-    if fit.see_through > conf.max_see_through:
-        fit.contradicted = True
-        fit.reason = (
-            f"the depth image contradicts the pose: on {100 * fit.see_through:.0f}% of the object's pixels the "
-            f"sensor sees more than {100 * conf.gate_m:.0f} cm past it"
-        )
-    elif fit.agree < conf.min_agree:
-        fit.contradicted = True
-        fit.reason = (
-            f"the depth image contradicts the pose: only {100 * fit.agree:.0f}% of the object's pixels have a "
-            f"reading within {100 * max(conf.gate_m, 0.25 * diameter_m):.0f} cm of its surface"
-        )
-    if fit.contradicted:
-        return fit
+    T_new, why = _icp(fit.cam_from_model, depth_m, rendered > 0, K, surface, diameter_m, conf)
+    if T_new is not None:
+        rendered = render_depth(T_new)
+    fit.see_through, fit.agree, contradiction = _agreement(depth_m, rendered, diameter_m, conf)
+    if contradiction:
+        fit.contradicted, fit.reason = True, contradiction
+    elif T_new is None:
+        fit.reason = why
+    else:
+        fit.cam_from_model, fit.aligned = T_new, True
+    return fit
+
+
+def _icp(T0: np.ndarray, depth_m: np.ndarray, sil: np.ndarray, K, surface: Surface, diameter_m: float, conf):
+    """(aligned pose, "") or (None, why not): robust point-to-plane ICP of the readings around ``sil``."""
     # Candidate pixels: the silhouette grown by a few pixels (the RGB pose may be off by that much).
     grow = int(np.ceil(0.03 * np.sqrt(sil.sum()))) + 2
     near = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1,) * 2)) > 0
     ys, xs = np.nonzero(near & (depth_m > 0))
-    if len(xs) > 2 * conf.max_points:  # before the gate removes some: keep twice the budget
-        keep = np.linspace(0, len(xs) - 1, 2 * conf.max_points).astype(int)
+    if len(xs) > conf.max_points:
+        keep = np.linspace(0, len(xs) - 1, conf.max_points).astype(int)
         ys, xs = ys[keep], xs[keep]
     P = _back_project(xs.astype(np.float64), ys.astype(np.float64), depth_m[ys, xs].astype(np.float64), K)
-    T_new = fit.cam_from_model.copy()
-    n_used = 0
+    T_new = T0.copy()
     for it in range(conf.iterations):
         gate = conf.gate_m + (conf.gate_final_m - conf.gate_m) * it / max(conf.iterations - 1, 1)
         R, t = T_new[:3, :3], T_new[:3, 3]
@@ -132,12 +159,8 @@ def align_to_depth(
         dist, idx = surface.tree.query(q, distance_upper_bound=gate)
         use = np.isfinite(dist)
         if use.sum() < conf.min_pixels:
-            fit.reason = f"{int(use.sum())} depth pixels within {100 * gate:.1f} cm of the mesh, need {conf.min_pixels}"
-            return fit
+            return None, f"{int(use.sum())} depth pixels within {100 * gate:.1f} cm of the mesh, need {conf.min_pixels}"
         q, idx = q[use], idx[use]
-        if len(q) > conf.max_points:
-            keep = np.linspace(0, len(q) - 1, conf.max_points).astype(int)
-            q, idx = q[keep], idx[keep]
         n = surface.normals[idx]
         r = np.einsum("ij,ij->i", q - surface.points[idx], n)
         J = np.hstack([np.cross(q, n), n])  # d r / d (rotation, translation) of the model-frame points
@@ -150,18 +173,14 @@ def align_to_depth(
         D[:3, :3] = cv2.Rodrigues(step[:3])[0]
         D[:3, 3] = step[3:]
         T_new = T_new @ np.linalg.inv(D)  # the points move by D in the model frame: the model by D^-1
-        n_used = len(q)
         if np.linalg.norm(step[3:]) < 1e-5 and np.linalg.norm(step[:3]) < 1e-5:
             break
-    fit.n_pixels = n_used
     c = surface.points.mean(axis=0)  # the object's centre moves by this much
-    moved = np.linalg.norm((T_new[:3, :3] - fit.cam_from_model[:3, :3]) @ c + T_new[:3, 3] - fit.cam_from_model[:3, 3])
-    turned = np.degrees(np.linalg.norm(cv2.Rodrigues(T_new[:3, :3] @ fit.cam_from_model[:3, :3].T)[0]))
+    moved = np.linalg.norm((T_new[:3, :3] - T0[:3, :3]) @ c + T_new[:3, 3] - T0[:3, 3])
+    turned = np.degrees(np.linalg.norm(cv2.Rodrigues(T_new[:3, :3] @ T0[:3, :3].T)[0]))
     if moved > conf.max_shift * diameter_m or turned > conf.max_turn_deg:
-        fit.reason = (
+        return None, (
             f"the alignment to the depth moved the object {100 * moved:.1f} cm and turned it {turned:.0f} deg "
             f"(limits {100 * conf.max_shift * diameter_m:.1f} cm, {conf.max_turn_deg:.0f} deg): not used"
         )
-        return fit
-    fit.cam_from_model, fit.aligned = T_new, True
-    return fit
+    return T_new, ""

@@ -688,18 +688,24 @@ class PoseEstimator:
             for rec in todo:
                 rec.reason = f"depth image not used ({e}): RGB pose"
             return
+        level = self.conf.depth.level
+        cam = frame.camera
+        if level > 1:  # every level-th pixel; the camera that sees exactly those
+            depth = np.ascontiguousarray(depth[::level, ::level])
+            K = cam.K.copy()
+            K[:2] /= level
+            cam = Camera(K, depth.shape[1], depth.shape[0])
         t_decode = (time.perf_counter() - t0) / len(todo)
         for rec in todo:
             t0 = time.perf_counter()
             name = rec.obj_name
             if name not in self._surfaces:
                 self._surfaces[name] = Surface.of(self.models[name].mesh)
-            _, rendered = self._render(name, rec.cam_from_model, frame.camera)
             fit = align_to_depth(
                 rec.cam_from_model,
                 depth,
-                rendered,
-                frame.camera.K,
+                lambda T, name=name: self._render(name, T, cam)[1],
+                cam.K,
                 self._surfaces[name],
                 self.models[name].diameter_m,
                 self.conf.depth,

@@ -4,10 +4,12 @@ ycbv_dev holds real frames of 5 objects; ``../shared/data/ycb_models`` holds 12.
 of them (lit, not the templates' flat shading) at random poses a YCB-Video camera would see — distance
 0.6–1.2 m, any view direction, roll ±30°, anywhere in the image — into real ycbv_dev frames that do not
 show that object, with a per-frame colour gain, defocus blur, sensor noise, JPEG compression and, in
-half of the frames, a piece of another real frame covering 15–35 % of the object. The frames are written
-as a BOP data set with ground truth (im_ids two apart, so no frame is tracked from another) and run
-through ``batchpose run``; the table gives ADD-S / ADD AUC per object, marking the objects that are in
-ycbv_dev. Synthetic frames are easier than real ones (exact intrinsics, no motion blur, a mesh that
+half of the frames, a piece of another real frame covering 15–35 % of the object. Each frame also gets a
+depth image (the background frame's sensor depth, the object's rendered depth with 2 mm·z² noise and 3 %
+holes, the occluding piece 10 cm in front of the object), used only with ``--set depth.enabled=true``.
+The frames are written as a BOP data set with ground truth (im_ids two apart, so no frame is tracked
+from another) and run through ``batchpose run``; the table gives ADD-S / ADD AUC per object, marking the
+objects that are in ycbv_dev. Synthetic frames are easier than real ones (exact intrinsics, no motion blur, a mesh that
 matches the object exactly), so the figures are an upper bound; what they show is which objects the
 method cannot handle at all.
 
@@ -33,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO, code_version, machine, table  # noqa: E402
 
 from batchpose.datasets import YcbvFrameSource  # noqa: E402
-from batchpose.frames import decode_image  # noqa: E402
+from batchpose.frames import decode_depth, decode_image  # noqa: E402
 from batchpose.mesh import load_mesh  # noqa: E402
 from batchpose.render import get_renderer  # noqa: E402
 
@@ -67,8 +69,22 @@ def place(R: np.ndarray, center_m: np.ndarray, K: np.ndarray, w: int, h: int, rn
     return T
 
 
-def compose(bg: np.ndarray, rgb: np.ndarray, depth: np.ndarray, occluder: np.ndarray | None, rng) -> np.ndarray:
-    """The render over ``bg`` with a soft edge, colour gain, optional occluding patch, blur and noise."""
+def compose(
+    bg: np.ndarray,
+    rgb: np.ndarray,
+    depth: np.ndarray,
+    occluder: np.ndarray | None,
+    rng,
+    bg_depth: np.ndarray,
+    depth_rng,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The render over ``bg`` with a soft edge, colour gain, optional occluding patch, blur and noise; and
+    the depth image a sensor would give of that (metres, 0: no reading; its noise from ``depth_rng``, so
+    that the colour images are those of earlier versions of this script for the same seed)."""
+    on = depth > 0
+    z = np.where(on, depth, bg_depth).astype(np.float32)
+    z = np.where(on, z + depth_rng.normal(0.0, 0.002, z.shape) * z**2, z)
+    z[on & (depth_rng.random(z.shape) < 0.03)] = 0.0
     alpha = cv2.GaussianBlur((depth > 0).astype(np.float32), (3, 3), 0)[..., None]
     obj = rgb.astype(np.float32) * rng.uniform(0.75, 1.15) * rng.uniform(0.92, 1.08, size=3)
     out = alpha * obj + (1.0 - alpha) * bg.astype(np.float32)
@@ -86,27 +102,29 @@ def compose(bg: np.ndarray, rgb: np.ndarray, depth: np.ndarray, occluder: np.nda
         else:
             y0 = y1 - int(frac * (y1 - y0))
         out[y0:y1, x0:x1] = occluder[y0:y1, x0:x1]
+        z[y0:y1, x0:x1] = float(depth[on].min()) - 0.1
     out = cv2.GaussianBlur(out, (0, 0), rng.uniform(0.5, 1.2))
     out += rng.normal(0.0, 3.0, out.shape)
-    return np.clip(out, 0, 255).astype(np.uint8)
+    return np.clip(out, 0, 255).astype(np.uint8), z
 
 
 def generate(out: Path, objects: list[str], n: int, seed: int) -> Path:
     """Write the BOP data set and its manifest; returns the manifest path."""
     source = YcbvFrameSource(DEV)
-    bgs = [(f, decode_image(f)) for f in source if f.scene_id < 10000]  # real frames only
+    bgs = [(f, decode_image(f), decode_depth(f)) for f in source if f.scene_id < 10000]  # real frames only
     renderer = get_renderer()
     rng = np.random.default_rng(seed)
     names = {}
     for k, name in enumerate(objects, start=1):
         names[k] = name
         model = load_mesh(MODELS / name / "textured.obj", name=name)
-        usable = [(f, img) for f, img in bgs if name not in {g.obj_name for g in f.gt}]
+        usable = [(f, img, d) for f, img, d in bgs if name not in {g.obj_name for g in f.gt}]
         scene = out / "data" / f"{k:06d}"
         (scene / "rgb").mkdir(parents=True, exist_ok=True)
+        (scene / "depth").mkdir(parents=True, exist_ok=True)
         cams, gts = {}, {}
         for i in range(n):
-            f, bg = usable[rng.integers(len(usable))]
+            f, bg, bg_depth = usable[rng.integers(len(usable))]
             K, w, h = f.camera.K, f.camera.width, f.camera.height
             for _ in range(20):  # a pose whose render stays inside the image
                 T = place(random_rotation(rng), model.center_m, K, w, h, rng)
@@ -115,10 +133,12 @@ def generate(out: Path, objects: list[str], n: int, seed: int) -> Path:
                 if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
                     break
             occluder = bgs[rng.integers(len(bgs))][1] if i % 2 else None
-            img = compose(bg, rgb, depth, occluder, rng)
+            img, z = compose(bg, rgb, depth, occluder, rng, bg_depth, np.random.default_rng([seed, k, i]))
             im_id = 2 * i
             cv2.imwrite(str(scene / "rgb" / f"{im_id:06d}.jpg"), img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
-            cams[str(im_id)] = {"cam_K": K.ravel().tolist(), "depth_scale": 1.0}
+            tenths_mm = np.clip(np.rint(z * 10000.0), 0, 65535).astype(np.uint16)
+            cv2.imwrite(str(scene / "depth" / f"{im_id:06d}.png"), tenths_mm)
+            cams[str(im_id)] = {"cam_K": K.ravel().tolist(), "depth_scale": 0.1}
             gts[str(im_id)] = [
                 {"obj_id": k, "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] * 1000).tolist()}
             ]

@@ -102,6 +102,10 @@ def _scene_depth(model, T, wall_m: float = 1.5) -> np.ndarray:
     return np.where(d > 0, d, wall_m).astype(np.float32)
 
 
+def _renders_depth(model):
+    return lambda T: get_renderer().render(model.content_hash, model.mesh, T, K_SYN, 640, 480)[1]
+
+
 def _pose(model) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(np.array([2.2, 0.4, -0.3]))[0]
@@ -131,9 +135,10 @@ def test_alignment_recovers_the_distance_a_monocular_pose_gets_wrong(cracker_mod
     noisy = depth + rng.normal(0, 0.002, depth.shape).astype(np.float32)  # 2 mm sensor noise
     noisy[rng.random(depth.shape) < 0.1] = 0  # and holes
     start = _moved(T, cracker_model, 0.04, 4.0)  # 3.2 cm too far, turned 4 degrees
-    _, rendered = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, start, K_SYN, 640, 480)
     surface = Surface.of(cracker_model.mesh)
-    fit = align_to_depth(start, noisy, rendered, K_SYN, surface, cracker_model.diameter_m, DepthConfig())
+    fit = align_to_depth(
+        start, noisy, _renders_depth(cracker_model), K_SYN, surface, cracker_model.diameter_m, DepthConfig()
+    )
     assert fit.aligned and not fit.contradicted and fit.reason == ""
     assert _add_mm(cracker_model, start, T) > 25
     assert _add_mm(cracker_model, fit.cam_from_model, T) < 2.0
@@ -142,17 +147,23 @@ def test_alignment_recovers_the_distance_a_monocular_pose_gets_wrong(cracker_mod
 
 def test_poses_the_depth_contradicts(cracker_model):
     T = _pose(cracker_model)
-    surface, conf, r = Surface.of(cracker_model.mesh), DepthConfig(), get_renderer()
+    surface, conf = Surface.of(cracker_model.mesh), DepthConfig()
 
     def fit_at(T_est, depth):
-        _, rendered = r.render(cracker_model.content_hash, cracker_model.mesh, T_est, K_SYN, 640, 480)
-        return align_to_depth(T_est, depth, rendered, K_SYN, surface, cracker_model.diameter_m, conf)
+        return align_to_depth(
+            T_est, depth, _renders_depth(cracker_model), K_SYN, surface, cracker_model.diameter_m, conf
+        )
 
     wall = np.full((480, 640), 1.5, np.float32)  # the object is not there at all
     floating = fit_at(T, wall)
     assert floating.contradicted and "sees more than 3 cm past it" in floating.reason
     behind = fit_at(_moved(T, cracker_model, 1.2, 0.0), _scene_depth(cracker_model, T, wall_m=1.0))
     assert behind.contradicted and "only 0% of the object's pixels have a reading within" in behind.reason
+    near_miss = _moved(T, cracker_model, 0.0, 0.0)
+    near_miss[:3, 3] += [0.03, 0.0, 0.0]  # 3 cm sideways (11 % of its diameter): aligned, then checked
+    rescued = fit_at(near_miss, _scene_depth(cracker_model, T))
+    assert rescued.aligned and not rescued.contradicted
+    assert _add_mm(cracker_model, rescued.cam_from_model, T) < 2.0
     blind = fit_at(T, np.zeros((480, 640), np.float32))  # no readings: nothing to say
     assert (
         not blind.contradicted and not blind.aligned and "0 of the object's pixels have a depth reading" in blind.reason
