@@ -29,6 +29,8 @@ from batchpose.config import DepthConfig
 
 #: Surface points sampled per mesh for the alignment.
 SURFACE_POINTS = 4000
+#: Readings needed on a silhouette to judge the pose (fewer than ``DepthConfig.min_pixels`` to align it).
+MIN_CHECK_PIXELS = 10
 
 
 @dataclass(frozen=True)
@@ -126,6 +128,12 @@ def align_to_depth(
     rendered = render_depth(fit.cam_from_model)
     n_seen = int(((rendered > 0) & (depth_m > 0)).sum())
     if n_seen < conf.min_pixels:
+        # Too few to align to; enough to see that a tiny, far-away pose is behind everything in the frame.
+        if n_seen >= MIN_CHECK_PIXELS:
+            fit.see_through, fit.agree, contradiction = _agreement(depth_m, rendered, diameter_m, conf)
+            if contradiction:
+                fit.contradicted, fit.reason = True, contradiction
+                return fit
         fit.reason = f"{n_seen} of the object's pixels have a depth reading, need {conf.min_pixels}"
         return fit
     T_new, why = _icp(fit.cam_from_model, depth_m, rendered > 0, K, surface, diameter_m, conf)

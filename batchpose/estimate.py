@@ -31,6 +31,7 @@ from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_ima
 from batchpose.gnc_pnp import solve_pose
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
+from batchpose.search import Silhouettes, search
 from batchpose.templates import TemplateLibrary
 from batchpose.track import Track, anchor_to_render, follow_all, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
@@ -127,6 +128,7 @@ class PoseEstimator:
         self._flip_cache: dict[str, list[np.ndarray]] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._surfaces: dict[str, Surface] = {}
+        self._silhouettes: dict[str, Silhouettes] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
         self._prev: dict | None = None
@@ -673,29 +675,32 @@ class PoseEstimator:
         }
         return [out[n] for n in obj_names]
 
-    def _use_depth(self, frame: Frame, records: list[PoseRecord]) -> None:
+    def _use_depth(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``depth.enabled``: check each found pose against the frame's depth image and align it to the depth
         (:func:`batchpose.depth.align_to_depth`). Tracks keep following the RGB poses. A pose the depth
-        contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in ``reason``."""
-        todo = [r for r in records if r.ok and r.obj_name in self.models and self.renderer is not None]
-        if not todo:
+        contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in ``reason``.
+        With ``depth.search``, an object then without a pose is looked for by colour and depth."""
+        dc = self.conf.depth
+        usable = [r for r in records if r.obj_name in self.models and self.renderer is not None]
+        todo = [r for r in usable if r.ok]
+        lost = [r for r in usable if r.status in ("too_few_matches", "pnp_failed")] if dc.search else []
+        if not todo and not lost:
             return
         t0 = time.perf_counter()
         try:
-            depth = decode_depth(frame)
+            full = decode_depth(frame)
         except ImageError as e:
             log.warning("%s: depth image not used: %s", frame.frame_id, e)
             for rec in todo:
                 rec.reason = f"depth image not used ({e}): RGB pose"
             return
+        # Every level-th pixel and the camera that sees exactly those. Renders stay at the frame's size
+        # (subsampled alike): a renderer changes GL context with the image size, which costs ~0.1 s.
         level = self.conf.depth.level
-        cam = frame.camera
-        if level > 1:  # every level-th pixel; the camera that sees exactly those
-            depth = np.ascontiguousarray(depth[::level, ::level])
-            K = cam.K.copy()
-            K[:2] /= level
-            cam = Camera(K, depth.shape[1], depth.shape[0])
-        t_decode = (time.perf_counter() - t0) / len(todo)
+        depth = np.ascontiguousarray(full[::level, ::level])
+        K = frame.camera.K.copy()
+        K[:2] /= level
+        t_decode = (time.perf_counter() - t0) / max(len(todo), 1)
         for rec in todo:
             t0 = time.perf_counter()
             name = rec.obj_name
@@ -704,19 +709,59 @@ class PoseEstimator:
             fit = align_to_depth(
                 rec.cam_from_model,
                 depth,
-                lambda T, name=name: self._render(name, T, cam)[1],
-                cam.K,
+                lambda T, name=name: self._render(name, T, frame.camera)[1][::level, ::level],
+                K,
                 self._surfaces[name],
                 self.models[name].diameter_m,
                 self.conf.depth,
             )
             if fit.contradicted:
                 rec.status, rec.reason = "pnp_failed", fit.reason
+                if dc.search:
+                    lost.append(rec)
             elif fit.aligned:
                 rec.cam_from_model = fit.cam_from_model
             else:
                 rec.reason = f"depth not used: {fit.reason}: RGB pose"
             rec.timings["depth"] = t_decode + time.perf_counter() - t0
+        for rec in lost:
+            t0 = time.perf_counter()
+            self._search(rec, frame, rgb, full)
+            rec.timings["depth"] = rec.timings.get("depth", 0.0) + time.perf_counter() - t0
+
+    def _search(self, rec: PoseRecord, frame: Frame, rgb: np.ndarray, depth: np.ndarray) -> None:
+        """``depth.search`` for one object without a pose (:func:`batchpose.search.search`)."""
+        name, cam = rec.obj_name, frame.camera
+        if name not in self._silhouettes:
+            lib = self.libraries[name]
+            self._silhouettes[name] = Silhouettes.of(
+                lambda T: self._render(name, T, Camera(lib.K, lib.width, lib.height)),
+                lib,
+                self.models[name].diameter_m,
+                self.conf.depth.search_view_step,
+            )
+        if name not in self._surfaces:
+            self._surfaces[name] = Surface.of(self.models[name].mesh)
+        found = search(
+            rgb,
+            depth,
+            cam.K,
+            self.libraries[name],
+            self._silhouettes[name],
+            self._surfaces[name],
+            self._flips(name),
+            self.models[name].diameter_m,
+            lambda T: self._render(name, T, cam),
+            self.conf.depth,
+        )
+        if found is None:
+            return
+        rec.status, rec.cam_from_model = "ok", found.cam_from_model
+        rec.confidence = 0.5 * found.visible * (1.0 - found.see_through)
+        rec.reason = (
+            f"found by the depth search (no SIFT pose): {100 * found.visible:.0f}% of it seen at its surface, "
+            f"colour log-odds {found.colour:.1f}"
+        )
 
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
@@ -746,7 +791,7 @@ class PoseEstimator:
         if any(r.status in ("bad_image", "bad_camera", "error") for r in records):
             self.reset_tracks()  # a frame that could not be read breaks every track
         elif self.conf.depth.enabled and frame.has_depth:
-            self._use_depth(frame, records)
+            self._use_depth(frame, rgb, records)
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

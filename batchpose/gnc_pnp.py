@@ -143,7 +143,8 @@ def solve_pose(
         t0 = time.perf_counter()
         rr = r**2 if conf.residual == "squared" else r
         base = rr if conf.mu0_from == "all" else rr[inliers]
-        mu = conf.kappa * float(np.median(base)) + conf.epsilon
+        # No inliers left after the polish: NaN selects nothing and ends GNC at once (without numpy's warning).
+        mu = conf.kappa * float(np.median(base)) + conf.epsilon if base.size else float("nan")
         prev: np.ndarray | None = None
         gnc_inliers = inliers
         while iterations < conf.max_iterations:

@@ -164,6 +164,17 @@ def test_poses_the_depth_contradicts(cracker_model):
     rescued = fit_at(near_miss, _scene_depth(cracker_model, T))
     assert rescued.aligned and not rescued.contradicted
     assert _add_mm(cracker_model, rescued.cam_from_model, T) < 2.0
+    # 10 m away: 155 readings on it, too few to align with min_pixels 200, enough to see it is behind the wall.
+    far = align_to_depth(
+        _moved(T, cracker_model, 12.0, 0.0),
+        _scene_depth(cracker_model, T),
+        _renders_depth(cracker_model),
+        K_SYN,
+        surface,
+        cracker_model.diameter_m,
+        DepthConfig(min_pixels=200),
+    )
+    assert far.contradicted and "only 0% of the object's pixels have a reading within" in far.reason
     blind = fit_at(T, np.zeros((480, 640), np.float32))  # no readings: nothing to say
     assert (
         not blind.contradicted and not blind.aligned and "0 of the object's pixels have a depth reading" in blind.reason
@@ -287,3 +298,89 @@ def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
     for f in back:
         assert f.depth_format == "16UC1"
         np.testing.assert_allclose(decode_depth(f), tenths / 10000.0, atol=0.5e-3 + 1e-6)  # to the millimetre
+
+
+# ------------------------------------------------------------------------------------- depth.search
+
+
+def _search_scene(model, T, seed: int = 5):
+    """The object lit at T over colour blobs (rgb), in front of a wall 1.5 m away (depth)."""
+    return compose(np.random.default_rng(seed), model, T), _scene_depth(model, T)
+
+
+def _search(model, library, rgb, depth):
+    from batchpose.search import Silhouettes, search
+
+    r = get_renderer()
+    conf = DepthConfig(search=True)
+    sil = Silhouettes.of(
+        lambda T: r.render(model.content_hash, model.mesh, T, library.K, library.width, library.height),
+        library,
+        model.diameter_m,
+        conf.search_view_step,
+    )
+    return search(
+        rgb,
+        depth,
+        K_SYN,
+        library,
+        sil,
+        Surface.of(model.mesh),
+        model.flips(),
+        model.diameter_m,
+        lambda T: r.render(model.content_hash, model.mesh, T, K_SYN, 640, 480),
+        conf,
+    )
+
+
+def _adds_mm(model, A, B) -> float:
+    from scipy.spatial import cKDTree
+
+    pts = np.asarray(model.mesh.vertices)[::8]
+    return 1000 * float(cKDTree(pts @ A[:3, :3].T + A[:3, 3]).query(pts @ B[:3, :3].T + B[:3, 3])[0].mean())
+
+
+def test_depth_search_finds_the_object_by_colour_and_depth(cracker_model, cracker_library):
+    T = _pose(cracker_model)
+    rgb, depth = _search_scene(cracker_model, T)
+    found = _search(cracker_model, cracker_library, rgb, depth)
+    assert found is not None and found.visible > 0.8 and found.see_through < 0.05
+    assert _adds_mm(cracker_model, found.cam_from_model, T) < 10
+
+
+def test_depth_search_finds_nothing_where_the_object_is_not(cracker_model, cracker_library):
+    """The same scene with another box (the gelatin box) where the cracker box was: nothing is kept."""
+    from batchpose.mesh import load_mesh
+    from tests.conftest import GELATIN
+
+    other = load_mesh(GELATIN)
+    T = _pose(other)
+    rgb, depth = _search_scene(other, T)
+    assert _search(cracker_model, cracker_library, rgb, depth) is None
+
+
+def test_estimator_depth_search_replaces_a_missing_pose(cracker_model, cracker_library):
+    """SIFT starved (4 keypoints a frame): no RGB pose; with depth.search the object is found, and says so."""
+    T = _pose(cracker_model)
+    rgb, depth = _search_scene(cracker_model, T)
+    frame = Frame(
+        "syn", 0, 0, 0, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
+        depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
+    )  # fmt: skip
+    for search in (False, True):
+        conf = load_estimator_config(
+            {"features": {"n_features": 4}, "track": {"enabled": False}, "depth": {"enabled": True, "search": search}}
+        )
+        est = PoseEstimator(
+            conf,
+            {cracker_model.name: cracker_library},
+            models={cracker_model.name: cracker_model},
+            renderer=get_renderer(),
+        )
+        (rec,) = est.estimate_frame(frame, [cracker_model.name])
+        if not search:
+            assert not rec.ok
+        else:
+            assert rec.ok and rec.reason.startswith("found by the depth search (no SIFT pose)")
+            assert 0 < rec.confidence <= 0.5 and rec.timings["depth"] > 0
+            assert _adds_mm(cracker_model, rec.cam_from_model, T) < 10

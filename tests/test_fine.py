@@ -117,6 +117,7 @@ def test_every_bundled_pipeline_loads(name):
     if name == "gnc_pose":
         assert conf.fine.enabled and conf.refine.flips and conf.match.roi == "none"
         assert conf.track.enabled and conf.strong_inliers > 0
+    assert conf.depth.enabled == (name == "rgbd") and conf.depth.search == (name == "rgbd")
     if name in ("paper", "oracle_roi", "tp_ub"):
         assert not conf.track.enabled or conf.match.roi == "gt_box" or conf.method == "tp_ub"
 

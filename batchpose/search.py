@@ -1,0 +1,237 @@
+"""Find an object SIFT missed, by colour and depth (``depth.search``; needs ``depth.enabled`` and a depth image).
+
+SIFT finds nothing on an object whose visible side has no texture (the mustard bottle's plain back in
+ycbv_dev, a black drill). Colour alone cannot place it — the object's size in the image and its distance
+trade off, and a smaller silhouette inside the object's colour blob always fits best — but with a depth
+image the distance at each pixel is known, so each silhouette size is tried only where the sensor sees
+something at the distance that size implies. For such an object:
+
+1. **colour**: each pixel's log-odds of the object's colours (a hue-saturation histogram of its mesh
+   rendered in the library's views; grey levels for unsaturated pixels) against the frame's own, at 1/4
+   resolution;
+2. **search**: silhouettes of the library's views (every ``search_view_step``-th, at
+   ``search_angles`` in-plane turns and sizes from 24 px to 0.9 of the image height) are correlated with
+   that map; a placement counts only where the sensor depth there agrees with the size's distance;
+3. **align**: the ``search_hypotheses`` best places, and each turned 180° about the mesh's principal axes,
+   are aligned to the depth (:func:`batchpose.depth.align_to_depth`, allowed to move further than a
+   check of an RGB pose is);
+4. **verify**: the alignment with the most of its silhouette seen by the sensor at its surface (within
+   1 cm) and the least seen past is kept if at least ``search_min_visible`` of it is seen, at most
+   ``search_max_see_through`` is seen past, and its visible pixels' mean colour log-odds is at least
+   ``search_min_colour``; otherwise the object stays not found.
+
+reports/ACCURACY.md ("Session 8") has the figures; on objects absent from a frame it must, and on the
+held-out set did, find nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from batchpose.config import DepthConfig
+from batchpose.depth import Surface, align_to_depth
+
+#: Hue bins, saturation bins (for saturated pixels) and grey-level bins (for the others).
+N_HUE, N_SAT, N_GREY = 12, 3, 4
+#: Saturation below which a pixel's hue is noise and its grey level is used instead.
+MIN_SATURATION = 48
+N_BINS = N_HUE * N_SAT + N_GREY
+#: The search's resolution (every LEVEL-th pixel).
+LEVEL = 4
+#: Sensor readings within this of an aligned hypothesis's surface see it.
+SEEN_M = 0.01
+
+
+def colour_bins(rgb: np.ndarray) -> np.ndarray:
+    """Each pixel's colour bin (see :data:`N_BINS`)."""
+    hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV).astype(np.int32)
+    h = (hsv[..., 0] * N_HUE) // 180
+    s = ((hsv[..., 1] - MIN_SATURATION).clip(0) * N_SAT) // (256 - MIN_SATURATION)
+    v = (hsv[..., 2] * N_GREY) // 256
+    return np.where(hsv[..., 1] >= MIN_SATURATION, h * N_SAT + s, N_HUE * N_SAT + v)
+
+
+@dataclass(frozen=True)
+class _View:
+    view_id: int
+    mask: np.ndarray  # uint8, the view's silhouette cropped to its box
+    centre: np.ndarray  # the model centre's pixel in the crop
+    span_px: float  # the object's diameter in the render
+
+
+@dataclass(frozen=True)
+class Silhouettes:
+    """What the search needs of one object: its colour histogram and its views' silhouettes."""
+
+    hist: np.ndarray
+    views: tuple[_View, ...]
+
+    @classmethod
+    def of(cls, render, lib, diameter_m: float, view_step: int) -> Silhouettes:
+        """Render every ``view_step``-th library view at the nearest library distance.
+
+        Args:
+            render: callable(cam_from_model) -> (rgb, depth) in the library's camera.
+            lib: the object's TemplateLibrary.
+        """
+        dist = lib.views["distance_m"].to_numpy()
+        f_lib = 0.5 * (lib.K[0, 0] + lib.K[1, 1])
+        hist = np.zeros(N_BINS)
+        views = []
+        for v in np.flatnonzero(np.isclose(dist, dist.min()))[::view_step]:
+            rgb, depth = render(lib.cam_from_model(int(v)))
+            sil = depth > 0
+            if sil.sum() < 50:
+                continue
+            hist += np.bincount(colour_bins(rgb)[sil], minlength=N_BINS)
+            ys, xs = np.nonzero(sil)
+            x0, y0 = xs.min(), ys.min()
+            crop = sil[y0 : ys.max() + 1, x0 : xs.max() + 1].astype(np.uint8)
+            views.append(_View(int(v), crop, lib.K[:2, 2] - [x0, y0], f_lib * diameter_m / dist[v]))
+        return cls(hist / max(hist.sum(), 1.0), tuple(views))
+
+
+@dataclass
+class Found:
+    """A pose the search found and kept."""
+
+    cam_from_model: np.ndarray
+    visible: float  # fraction of the silhouette the sensor sees at its surface
+    see_through: float  # fraction the sensor sees past
+    colour: float  # mean colour log-odds of the visible pixels
+
+
+def _colour_map(rgb: np.ndarray, hist: np.ndarray, level: int) -> np.ndarray:
+    small = cv2.resize(rgb, (rgb.shape[1] // level, rgb.shape[0] // level), interpolation=cv2.INTER_AREA)
+    bins = colour_bins(small)
+    frame = np.bincount(bins.ravel(), minlength=N_BINS) / bins.size
+    return np.log((hist + 1e-3) / (frame + 1e-3)).clip(-3, 3)[bins].astype(np.float32)
+
+
+def _block_depth(depth: np.ndarray, level: int, shape: tuple[int, int]) -> np.ndarray:
+    """Median sensor depth of each level x level block (0 where none has a reading)."""
+    h, w = shape
+    d = depth[: h * level, : w * level].astype(np.float32).copy()
+    d[d <= 0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # blocks without a reading
+        med = np.nanmedian(d.reshape(h, level, w, level), axis=(1, 3))
+    return np.nan_to_num(med, nan=0.0)
+
+
+def _placed(view: _View, span_px: float, angle: float, level: int) -> np.ndarray:
+    """The view's silhouette with the object ``span_px`` across, turned by ``angle``, centred in a square."""
+    scale = span_px / view.span_px / level
+    size = int(np.ceil(0.6 * span_px / level)) * 2 + 1
+    A = cv2.getRotationMatrix2D((float(view.centre[0]), float(view.centre[1])), -np.degrees(angle), scale)
+    A[:, 2] += (size - 1) / 2 - view.centre
+    interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
+    return cv2.warpAffine(view.mask.astype(np.float32), A, (size, size), flags=interp)
+
+
+def _pose(lib, view_id: int, angle: float, depth_m: float, centre_xy, K: np.ndarray) -> np.ndarray:
+    """The pose showing library view ``view_id`` turned by ``angle`` in the image, its centre at
+    ``centre_xy`` and ``depth_m`` away (the view turned so that the centre's viewing ray is its axis)."""
+    T = lib.cam_from_model(view_id)
+    dist = float(lib.views["distance_m"].iloc[view_id])
+    c, s = np.cos(angle), np.sin(angle)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+    centre_model = T[:3, :3].T @ (np.array([0.0, 0.0, dist]) - T[:3, 3])
+    ray = np.linalg.solve(K, np.array([centre_xy[0], centre_xy[1], 1.0]))
+    ray /= np.linalg.norm(ray)
+    axis = np.cross([0.0, 0.0, 1.0], ray)
+    sin_a = np.linalg.norm(axis)
+    R_ray = np.eye(3) if sin_a < 1e-12 else cv2.Rodrigues(axis / sin_a * np.arcsin(min(sin_a, 1.0)))[0]
+    out = np.eye(4)
+    out[:3, :3] = R_ray @ R
+    out[:3, 3] = depth_m / ray[2] * ray - out[:3, :3] @ centre_model
+    return out
+
+
+def _places(lmap, zs, sil: Silhouettes, f_px: float, diameter_m: float, image_h: int, conf: DepthConfig):
+    """The best-scoring depth-consistent placements, distinct, best first: (score, view, angle, span, x, y)."""
+    found = []
+    span = 24.0
+    while span <= 0.9 * image_h:
+        z = f_px * diameter_m / span  # the object's centre distance at this size
+        for angle in np.deg2rad(np.arange(0.0, 360.0, 360.0 / conf.search_angles)):
+            for view in sil.views:
+                M = _placed(view, span, angle, LEVEL)
+                if M.shape[0] >= lmap.shape[0] or M.shape[1] >= lmap.shape[1]:
+                    continue
+                r = cv2.matchTemplate(lmap, M, cv2.TM_CCORR)
+                half = (M.shape[0] - 1) // 2
+                zc = zs[half : half + r.shape[0], half : half + r.shape[1]]  # the reading at the centre
+                # The centre lies behind the visible surface by up to the object's size.
+                ok = (zc > 0) & (z > zc - 0.1 * diameter_m) & (z < zc + 0.7 * diameter_m)
+                if not ok.any():
+                    continue
+                _, best, _, (x, y) = cv2.minMaxLoc(np.where(ok, r, -np.inf).astype(np.float32))
+                found.append(
+                    (best, view.view_id, angle, span, (x + half + 0.5) * LEVEL - 0.5, (y + half + 0.5) * LEVEL - 0.5)
+                )
+        span *= 2**0.25
+    found.sort(key=lambda f: -f[0])
+    kept: list[tuple] = []
+    for f in found:
+        if all(f[1] != k[1] or np.hypot(f[4] - k[4], f[5] - k[5]) > 0.3 * min(f[3], k[3]) for k in kept):
+            kept.append(f)
+        if len(kept) == conf.search_hypotheses:
+            break
+    return kept
+
+
+def search(
+    rgb: np.ndarray,
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    lib,
+    sil: Silhouettes,
+    surface: Surface,
+    flips: list[np.ndarray],
+    diameter_m: float,
+    render,
+    conf: DepthConfig,
+) -> Found | None:
+    """Look for the object (see the module docstring); None when nothing passes the checks.
+
+    Args:
+        rgb, depth_m: the frame and its registered depth (metres, 0: no reading), same size.
+        K: their intrinsics. lib: the object's TemplateLibrary. flips: the mesh's half-turns.
+        render: callable(cam_from_model) -> (rgb, depth) in the frame's camera.
+    """
+    lmap = _colour_map(rgb, sil.hist, LEVEL)
+    zs = _block_depth(depth_m, LEVEL, lmap.shape)
+    f_px = 0.5 * (K[0, 0] + K[1, 1])
+    places = _places(lmap, zs, sil, f_px, diameter_m, rgb.shape[0], conf)
+    wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0)  # hypotheses start further off
+    colour = cv2.resize(lmap, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
+    best, best_score = None, -np.inf
+    for _score, view_id, angle, span, x, y in places:
+        start = _pose(lib, view_id, angle, f_px * diameter_m / span, (x, y), K)
+        for F in [np.eye(4), *flips]:
+            fit = align_to_depth(start @ F, depth_m, lambda T: render(T)[1], K, surface, diameter_m, wide)
+            if not fit.aligned:
+                continue
+            rendered = render(fit.cam_from_model)[1]
+            sil_px = rendered > 0
+            seen = sil_px & (np.abs(depth_m - rendered) < SEEN_M)
+            visible = float(seen.sum()) / max(int(sil_px.sum()), 1)
+            score = visible - 2.0 * fit.see_through
+            if seen.any() and score > best_score:
+                best_score = score
+                best = Found(fit.cam_from_model, visible, fit.see_through, float(colour[seen].mean()))
+    if best is None:
+        return None
+    if (
+        best.visible < conf.search_min_visible
+        or best.see_through > conf.search_max_see_through
+        or best.colour < conf.search_min_colour
+    ):
+        return None
+    return best
