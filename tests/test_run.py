@@ -131,6 +131,7 @@ def _cli(*args, cwd=ROOT):
         ),
         (str(DEMO), "gnc:\n  kapa: 3\n", "unknown key kapa"),
         (str(DEMO), "match:\n  direction: sideways\n", "match.direction = 'sideways'"),
+        (str(DEMO), "depth:\n  enabled: true\n  level: 0\n", "depth.level must be >= 1, got 0"),
     ],
 )
 def test_bad_manifest_or_pipeline_is_one_line_exit_2(tmp_path, manifest, pipeline_extra, expect):
@@ -263,3 +264,26 @@ def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_pa
     assert len(frames) == 5 and all(f.has_depth for f in frames)
     d = decode_depth(frames[0])
     assert 0.4 < float(np.median(d[d > 0])) < 2.0  # metres
+
+
+def test_a_missing_depth_topic_is_one_line_exit_2(tmp_path):
+    from batchpose.datasets import open_frames
+    from batchpose.mcap_io import write_frames_mcap
+
+    write_frames_mcap(open_frames({"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")}, ROOT), tmp_path / "d.mcap")
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text(
+        json.dumps(
+            {
+                "name": "x",
+                "frames": {"format": "mcap", "path": str(tmp_path / "d.mcap"), "depth_topic": "/camera/dpeth"},
+                "models": {"root": str(ROOT / "demo_data/models")},
+                "objects": ["003_cracker_box"],
+            }
+        )
+    )
+    r = _cli("run", str(ROOT / "pipelines" / "rgbd.yaml"), "--manifest", str(manifest), "--out", str(tmp_path / "o"))
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "depth topic '/camera/dpeth' not found" in lines[0], r.stderr
+    assert "/camera/depth" in lines[0]  # the error lists the image topics there are
