@@ -443,6 +443,11 @@ class PoseEstimator:
             self._flip_cache[name] = self.models[name].flips()
         return self._flip_cache[name]
 
+    def _surface(self, name: str) -> Surface:
+        if name not in self._surfaces:
+            self._surfaces[name] = Surface.of(self.models[name].mesh)
+        return self._surfaces[name]
+
     def _can_refine(self, name: str) -> bool:
         return self.conf.refine.enabled and self.renderer is not None and name in self.models
 
@@ -696,7 +701,7 @@ class PoseEstimator:
             return
         # Every level-th pixel and the camera that sees exactly those. Renders stay at the frame's size
         # (subsampled alike): a renderer changes GL context with the image size, which costs ~0.1 s.
-        level = self.conf.depth.level
+        level = dc.level
         depth = np.ascontiguousarray(full[::level, ::level])
         K = frame.camera.K.copy()
         K[:2] /= level
@@ -704,16 +709,14 @@ class PoseEstimator:
         for rec in todo:
             t0 = time.perf_counter()
             name = rec.obj_name
-            if name not in self._surfaces:
-                self._surfaces[name] = Surface.of(self.models[name].mesh)
             fit = align_to_depth(
                 rec.cam_from_model,
                 depth,
                 lambda T, name=name: self._render(name, T, frame.camera)[1][::level, ::level],
                 K,
-                self._surfaces[name],
+                self._surface(name),
                 self.models[name].diameter_m,
-                self.conf.depth,
+                dc,
             )
             if fit.contradicted:
                 rec.status, rec.reason = "pnp_failed", fit.reason
@@ -740,15 +743,13 @@ class PoseEstimator:
                 self.models[name].diameter_m,
                 self.conf.depth.search_view_step,
             )
-        if name not in self._surfaces:
-            self._surfaces[name] = Surface.of(self.models[name].mesh)
         found = search(
             rgb,
             depth,
             cam.K,
             self.libraries[name],
             self._silhouettes[name],
-            self._surfaces[name],
+            self._surface(name),
             self._flips(name),
             self.models[name].diameter_m,
             lambda T: self._render(name, T, cam),

@@ -371,7 +371,7 @@ class McapFrameSource(FrameSource):
         else:
             self.truncated = tail != MCAP_MAGIC
             self._scan_stream()
-        self.depth_topic = self._check_depth_topic(depth_topic)
+        self.depth_topic = None if depth_topic is None else self._image_type_topic(depth_topic, "depth")
         self.image_topic = self._choose_image_topic(image_topic)
         self.calibration_topic = self._choose_calibration_topic(calibration_topic)
         self.gt_topic = GT_TOPIC if GT_TOPIC in self._topics() else None
@@ -496,9 +496,6 @@ class McapFrameSource(FrameSource):
                 f"(expected one of {', '.join(IMAGE_SCHEMAS)})"
             )
         return wanted
-
-    def _check_depth_topic(self, wanted: str | None) -> str | None:
-        return None if wanted is None else self._image_type_topic(wanted, "depth")
 
     def _choose_image_topic(self, wanted: str | None) -> str:
         topics = self._topics()
@@ -684,7 +681,7 @@ class McapFrameSource(FrameSource):
             yield from self._frames()
             return
         # One frame waits for its depth image: it may be logged just after the colour image.
-        pending: Frame | None = None
+        pending: _PendingFrame | None = None
         depths: dict[int, _Image] = {}
         for item in self._frames(with_depth=True):
             if isinstance(item, _Image):
@@ -709,9 +706,8 @@ class McapFrameSource(FrameSource):
         if abs(best - stamp) > DEPTH_MAX_GAP_NS:
             return frame
         d = depths[best]
-        fmt = "16UC1" if d.fmt == "mono16" else d.fmt
         return dataclasses.replace(
-            frame, depth_format=fmt, depth_data=d.data, depth_scale_m=DEPTH_UNITS_M.get(fmt, 1.0), depth_step=d.step
+            frame, depth_format=d.fmt, depth_data=d.data, depth_scale_m=DEPTH_UNITS_M.get(d.fmt, 1.0), depth_step=d.step
         )
 
     def _frames(self, with_depth: bool = False) -> Iterator[Any]:

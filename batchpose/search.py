@@ -134,7 +134,7 @@ def _placed(view: _View, span_px: float, angle: float, level: int) -> np.ndarray
     return cv2.warpAffine(view.mask.astype(np.float32), A, (size, size), flags=interp)
 
 
-def _pose(lib, view_id: int, angle: float, depth_m: float, centre_xy, K: np.ndarray) -> np.ndarray:
+def pose_from_view(lib, view_id: int, angle: float, depth_m: float, centre_xy, K: np.ndarray) -> np.ndarray:
     """The pose showing library view ``view_id`` turned by ``angle`` in the image, its centre at
     ``centre_xy`` and ``depth_m`` away (the view turned so that the centre's viewing ray is its axis)."""
     T = lib.cam_from_model(view_id)
@@ -213,7 +213,7 @@ def search(
     colour = cv2.resize(lmap, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
     best, best_score = None, -np.inf
     for _score, view_id, angle, span, x, y in places:
-        start = _pose(lib, view_id, angle, f_px * diameter_m / span, (x, y), K)
+        start = pose_from_view(lib, view_id, angle, f_px * diameter_m / span, (x, y), K)
         for F in [np.eye(4), *flips]:
             fit = align_to_depth(start @ F, depth_m, lambda T: render(T)[1], K, surface, diameter_m, wide)
             if not fit.aligned:

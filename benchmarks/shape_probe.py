@@ -40,6 +40,7 @@ from batchpose.features import to_gray  # noqa: E402
 from batchpose.frames import decode_image  # noqa: E402
 from batchpose.mesh import load_mesh  # noqa: E402
 from batchpose.render import get_renderer  # noqa: E402
+from batchpose.search import pose_from_view  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
@@ -205,22 +206,8 @@ def search(bank: ShapeBank, frame_edges: np.ndarray, top: int, refine: int = 10)
 
 def pose_from(lib, hit: ShapeHit, K: np.ndarray) -> np.ndarray:
     """The pose that shows ``hit``'s view turned by its angle in the image, its centre at ``hit.centre_xy``
-    and ``hit.depth_m`` away (the view rotated so that the centre's viewing ray is the optical axis's)."""
-    T = lib.cam_from_model(hit.view_id)
-    dist = float(lib.views["distance_m"].iloc[hit.view_id])
-    c, s = np.cos(hit.angle_rad), np.sin(hit.angle_rad)
-    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    R = Rz @ T[:3, :3]
-    centre_model = T[:3, :3].T @ (np.array([0.0, 0.0, dist]) - T[:3, 3])  # the model centre, model frame
-    ray = np.linalg.solve(K, np.array([hit.centre_xy[0], hit.centre_xy[1], 1.0]))
-    ray /= np.linalg.norm(ray)
-    axis = np.cross([0.0, 0.0, 1.0], ray)
-    sin_a = np.linalg.norm(axis)
-    R_ray = np.eye(3) if sin_a < 1e-12 else cv2.Rodrigues(axis / sin_a * np.arcsin(min(sin_a, 1.0)))[0]
-    out = np.eye(4)
-    out[:3, :3] = R_ray @ R
-    out[:3, 3] = hit.depth_m / ray[2] * ray - out[:3, :3] @ centre_model
-    return out
+    and ``hit.depth_m`` away."""
+    return pose_from_view(lib, hit.view_id, hit.angle_rad, hit.depth_m, hit.centre_xy, K)
 
 
 def colour_score(render, rgb: np.ndarray, T: np.ndarray) -> float:
