@@ -321,7 +321,7 @@ class DepthConfig:
     a pose far behind the objects in front of it (0: never fail a pose)."""
     search: bool = False
     """Look for an object the RGB estimate did not find (or whose pose the depth contradicts) by colour and
-    depth (:mod:`batchpose.search`, ~2.5 s an object). A pose found this way has reason "found by the depth
+    depth (:mod:`batchpose.search`, ~3–10 s an object). A pose found this way has reason "found by the depth
     search" and confidence at most 0.5."""
     search_view_step: int = 4
     """Use every this-many-th library view (at the nearest distance) as a silhouette."""
@@ -329,13 +329,20 @@ class DepthConfig:
     """In-plane turns of each silhouette."""
     search_hypotheses: int = 5
     """Places aligned to the depth (each also turned 180 degrees about the mesh's three principal axes)."""
+    search_polish: int = 3
+    """The best-fitting this-many hypotheses that pass the checks below are turned about their principal axes
+    and aligned again while that fits the depth better (0: keep the best as aligned)."""
     search_min_visible: float = 0.4
     """Keep a found pose only if the sensor sees at least this fraction of its silhouette at its surface ..."""
     search_max_see_through: float = 0.1
     """... sees past at most this fraction ..."""
     search_min_colour: float = 1.2
-    """... and the seen pixels look like the object: mean log-odds of their colours under the object's
-    colour histogram against the frame's at least this (1.2: 3.3 times likelier)."""
+    """... the seen pixels have the object's colours: mean log-odds of their colours under the object's
+    colour histogram against the frame's at least this (1.2: 3.3 times likelier) ..."""
+    search_min_match: float = 0.2
+    """... and in the right places: the mesh rendered at the pose correlates (normalised, in Lab) with the
+    frame over the seen pixels at least this well. A flat face laid onto a wall of similar colours fits the
+    depth and the histogram but not the texture's layout (~0 there; found objects 0.4-1)."""
 
 
 @dataclass(frozen=True)
@@ -495,6 +502,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("search_view_step", dc.search_view_step >= 1, "be >= 1"),
         ("search_angles", dc.search_angles >= 1, "be >= 1"),
         ("search_hypotheses", dc.search_hypotheses >= 1, "be >= 1"),
+        ("search_polish", dc.search_polish >= 0, "be >= 0"),
+        ("search_min_match", -1 <= dc.search_min_match <= 1, "be in [-1, 1]"),
         ("search_min_visible", 0 <= dc.search_min_visible <= 1, "be in [0, 1]"),
         ("search_max_see_through", 0 <= dc.search_max_see_through <= 1, "be in [0, 1]"),
     ):

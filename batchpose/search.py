@@ -14,11 +14,17 @@ something at the distance that size implies. For such an object:
    that map; a placement counts only where the sensor depth there agrees with the size's distance;
 3. **align**: the ``search_hypotheses`` best places, and each turned 180° about the mesh's principal axes,
    are aligned to the depth (:func:`batchpose.depth.align_to_depth`, allowed to move further than a
-   check of an RGB pose is);
-4. **verify**: the alignment with the most of its silhouette seen by the sensor at its surface (within
-   1 cm) and the least seen past is kept if at least ``search_min_visible`` of it is seen, at most
-   ``search_max_see_through`` is seen past, and its visible pixels' mean colour log-odds is at least
-   ``search_min_colour``; otherwise the object stays not found.
+   check of an RGB pose is); alignments whose seen pixels do not look like the object are dropped;
+4. **polish**: the ``search_polish`` best-fitting distinct alignments are turned about their principal
+   axes (20°, 10°, 5°) and aligned again while that fits the depth better. "Fits" counts only the
+   silhouette's pixels not hidden by something nearer: a bottle behind a box is judged by its visible
+   half (an alignment alone stops in the nearest minimum, e.g. the bottle turned so that its base sits
+   where the box is);
+5. **verify**: the best polished pose is kept if the sensor sees at least ``search_min_visible`` of its
+   silhouette at its surface (within 1 cm), at most ``search_max_see_through`` past it, its seen
+   pixels' mean colour log-odds is at least ``search_min_colour`` and the mesh rendered there correlates
+   with the frame at least ``search_min_match`` (the texture's layout, not only its colours); otherwise
+   the object stays not found.
 
 reports/ACCURACY.md ("Session 8") has the figures; on objects absent from a frame it must, and on the
 held-out set did, find nothing.
@@ -186,6 +192,52 @@ def _places(lmap, zs, sil: Silhouettes, f_px: float, diameter_m: float, image_h:
     return kept
 
 
+@dataclass
+class _Candidate:
+    """An aligned hypothesis and how the sensor and the colours see it."""
+
+    fit_pose: np.ndarray
+    visible: float  # fraction of the silhouette the sensor sees at its surface
+    unhidden: float  # the same, of the silhouette's pixels not hidden by something nearer (nor without a reading)
+    see_through: float
+    colour: float
+    match: float  # correlation of the rendered mesh's colours with the frame's where the sensor sees it
+
+    @property
+    def score(self) -> float:
+        """How well the depth fits: occluders in front of the object do not count against it."""
+        return self.unhidden - 2.0 * self.see_through
+
+    def passes(self, conf: DepthConfig) -> bool:
+        return (
+            self.visible >= conf.search_min_visible
+            and self.see_through <= conf.search_max_see_through
+            and self.colour >= conf.search_min_colour
+            and self.match >= conf.search_min_match
+        )
+
+
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Normalised cross-correlation of two (N, 3) colour samples (each channel about its mean)."""
+    a = a.astype(np.float64) - a.mean(axis=0)
+    b = b.astype(np.float64) - b.mean(axis=0)
+    return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-9))
+
+
+def _turns(surface: Surface, step_rad: float) -> list[np.ndarray]:
+    """Model-frame turns by +-``step_rad`` about the surface's principal axes through its centroid."""
+    c = surface.points.mean(axis=0)
+    _, axes = np.linalg.eigh(np.cov((surface.points - c).T))
+    out = []
+    for a in axes.T:
+        for sign in (1.0, -1.0):
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(sign * step_rad * a)[0]
+            T[:3, 3] = c - T[:3, :3] @ c
+            out.append(T)
+    return out
+
+
 def search(
     rgb: np.ndarray,
     depth_m: np.ndarray,
@@ -211,27 +263,85 @@ def search(
     places = _places(lmap, zs, sil, f_px, diameter_m, rgb.shape[0], conf)
     wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0)  # hypotheses start further off
     colour = cv2.resize(lmap, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
-    best, best_score = None, -np.inf
+
+    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+    last: dict = {}
+
+    def rendered(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # the alignment's last render is the one judged
+        key = np.asarray(T, dtype=np.float64).tobytes()
+        if key not in last:
+            last.clear()
+            last[key] = render(T)
+        return last[key]
+
+    def render_depth(T: np.ndarray) -> np.ndarray:
+        return rendered(T)[1]
+
+    def aligned(start: np.ndarray) -> _Candidate | None:
+        fit = align_to_depth(start, depth_m, render_depth, K, surface, diameter_m, wide)
+        if not fit.aligned:
+            return None
+        ren_rgb, ren_depth = rendered(fit.cam_from_model)
+        sil_px = ren_depth > 0
+        seen = sil_px & (np.abs(depth_m - ren_depth) < SEEN_M)
+        if not seen.any():
+            return None
+        hidden = sil_px & ((depth_m <= 0) | (depth_m < ren_depth - SEEN_M))
+        n = int(sil_px.sum())
+        return _Candidate(
+            fit.cam_from_model,
+            float(seen.sum()) / n,
+            float(seen.sum()) / max(n - int(hidden.sum()), 1),
+            fit.see_through,
+            float(colour[seen].mean()),
+            _correlation(lab[seen], cv2.cvtColor(ren_rgb, cv2.COLOR_RGB2LAB)[seen]),
+        )
+
+    found = []
     for _score, view_id, angle, span, x, y in places:
         start = pose_from_view(lib, view_id, angle, f_px * diameter_m / span, (x, y), K)
-        for F in [np.eye(4), *flips]:
-            fit = align_to_depth(start @ F, depth_m, lambda T: render(T)[1], K, surface, diameter_m, wide)
-            if not fit.aligned:
-                continue
-            rendered = render(fit.cam_from_model)[1]
-            sil_px = rendered > 0
-            seen = sil_px & (np.abs(depth_m - rendered) < SEEN_M)
-            visible = float(seen.sum()) / max(int(sil_px.sum()), 1)
-            score = visible - 2.0 * fit.see_through
-            if seen.any() and score > best_score:
-                best_score = score
-                best = Found(fit.cam_from_model, visible, fit.see_through, float(colour[seen].mean()))
+        found += [
+            c
+            for c in (aligned(start @ F) for F in [np.eye(4), *flips])
+            if c is not None and c.colour >= conf.search_min_colour
+        ]
+    found.sort(key=lambda c: -c.score)
+    distinct: list[_Candidate] = []  # alignments from several places often end at the same pose
+    for cand in found:
+        if all(not _same_pose(cand.fit_pose, d.fit_pose, surface, diameter_m) for d in distinct):
+            distinct.append(cand)
+    best = None
+    for cand in distinct[: max(conf.search_polish, 1)]:
+        if conf.search_polish:
+            cand = _polish(cand, aligned, surface, conf)
+        if cand.passes(conf) and (best is None or cand.score > best.score):
+            best = cand
     if best is None:
         return None
-    if (
-        best.visible < conf.search_min_visible
-        or best.see_through > conf.search_max_see_through
-        or best.colour < conf.search_min_colour
-    ):
-        return None
-    return best
+    return Found(best.fit_pose, best.visible, best.see_through, best.colour)
+
+
+def _same_pose(A: np.ndarray, B: np.ndarray, surface: Surface, diameter_m: float) -> bool:
+    """Centres within a tenth of the diameter and orientations within 30 degrees."""
+    c = surface.points.mean(axis=0)
+    moved = np.linalg.norm(A[:3, :3] @ c + A[:3, 3] - B[:3, :3] @ c - B[:3, 3])
+    turned = np.degrees(np.linalg.norm(cv2.Rodrigues(A[:3, :3] @ B[:3, :3].T)[0]))
+    return bool(moved < 0.1 * diameter_m and turned < 30.0)
+
+
+def _polish(cand: _Candidate, aligned, surface: Surface, conf: DepthConfig) -> _Candidate:
+    """Turn the candidate about its principal axes (20, 10, 5 degrees), each turn aligned to the depth again,
+    while that fits the depth better and still passes the checks: an alignment stops in the nearest
+    minimum, often a bottle turned about its axis with its base where the occluder in front of it is."""
+    step = 20.0
+    while step >= 5.0:
+        better = None
+        for turn in _turns(surface, np.deg2rad(step)):
+            c = aligned(cand.fit_pose @ turn)
+            if c is not None and c.colour >= conf.search_min_colour and c.score > (better or cand).score + 1e-3:
+                better = c
+        if better is None:
+            step /= 2
+        else:
+            cand = better
+    return cand
