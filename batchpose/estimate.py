@@ -129,6 +129,7 @@ class PoseEstimator:
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._surfaces: dict[str, Surface] = {}
         self._silhouettes: dict[str, Silhouettes] = {}
+        self._found: dict[str, tuple[Frame, np.ndarray]] = {}  # the depth search's last pose of each object
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
         self._prev: dict | None = None
@@ -539,6 +540,7 @@ class PoseEstimator:
         self._tracks = {}
         self._lost = {}
         self._prev = None
+        self._found = {}
 
     def tracking(self) -> bool:
         """True when :meth:`estimate_frame` follows confident poses into the next frames (``track.*``)."""
@@ -754,15 +756,34 @@ class PoseEstimator:
             self.models[name].diameter_m,
             lambda T: self._render(name, T, cam),
             self.conf.depth,
+            self._previous_found(name, frame),
         )
         if found is None:
+            self._found.pop(name, None)
             return
+        self._found[name] = (frame, found.cam_from_model)
         rec.status, rec.cam_from_model = "ok", found.cam_from_model
         rec.confidence = 0.5 * found.visible * (1.0 - found.see_through)
+        how = "followed from the previous frame's" if found.followed else "found by the"
         rec.reason = (
-            f"found by the depth search (no SIFT pose): {100 * found.visible:.0f}% of it seen at its surface, "
-            f"colour log-odds {found.colour:.1f}"
+            f"{how} depth search (no SIFT pose): {100 * found.visible:.0f}% of it seen at its surface, "
+            f"colour log-odds {found.colour:.1f}, texture match {found.match:.2f}"
         )
+
+    def _previous_found(self, name: str, frame: Frame) -> np.ndarray | None:
+        """The depth search's pose of ``name`` in the previous frame, when tracking is on and ``frame`` is the
+        next one of its sequence (same scene and camera, ``im_id`` + 1, within ``track.max_gap_s``)."""
+        if name not in self._found or not self.tracking():
+            return None
+        prev, pose = self._found[name]
+        gap_s = (frame.stamp_ns - prev.stamp_ns) * 1e-9
+        follows = (
+            prev.scene_id == frame.scene_id
+            and frame.im_id == prev.im_id + 1
+            and np.array_equal(prev.camera.K, frame.camera.K)
+            and 0 < gap_s <= self.conf.track.max_gap_s
+        )
+        return pose if follows else None
 
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:

@@ -51,6 +51,8 @@ N_BINS = N_HUE * N_SAT + N_GREY
 LEVEL = 4
 #: Sensor readings within this of an aligned hypothesis's surface see it.
 SEEN_M = 0.01
+#: The alignments' Levenberg damping (relative; see ``depth.damping``, which is heavier for RGB poses).
+SEARCH_DAMPING = 0.001
 
 
 def colour_bins(rgb: np.ndarray) -> np.ndarray:
@@ -110,6 +112,8 @@ class Found:
     visible: float  # fraction of the silhouette the sensor sees at its surface
     see_through: float  # fraction the sensor sees past
     colour: float  # mean colour log-odds of the visible pixels
+    match: float  # correlation of the rendered mesh's colours with the frame's over the visible pixels
+    followed: bool = False  # from the previous frame's found pose, without searching this frame
 
 
 def _colour_map(rgb: np.ndarray, hist: np.ndarray, level: int) -> np.ndarray:
@@ -249,6 +253,7 @@ def search(
     diameter_m: float,
     render,
     conf: DepthConfig,
+    previous: np.ndarray | None = None,
 ) -> Found | None:
     """Look for the object (see the module docstring); None when nothing passes the checks.
 
@@ -256,12 +261,12 @@ def search(
         rgb, depth_m: the frame and its registered depth (metres, 0: no reading), same size.
         K: their intrinsics. lib: the object's TemplateLibrary. flips: the mesh's half-turns.
         render: callable(cam_from_model) -> (rgb, depth) in the frame's camera.
+        previous: the pose the search found in the previous frame of a sequence: aligned and polished
+            first, and kept without searching the frame when it passes the checks.
     """
     lmap = _colour_map(rgb, sil.hist, LEVEL)
-    zs = _block_depth(depth_m, LEVEL, lmap.shape)
-    f_px = 0.5 * (K[0, 0] + K[1, 1])
-    places = _places(lmap, zs, sil, f_px, diameter_m, rgb.shape[0], conf)
-    wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0)  # hypotheses start further off
+    # Hypotheses start further off than an RGB pose; light damping lets the depth turn them.
+    wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0, damping=SEARCH_DAMPING)
     colour = cv2.resize(lmap, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
 
     lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
@@ -297,6 +302,15 @@ def search(
             _correlation(lab[seen], cv2.cvtColor(ren_rgb, cv2.COLOR_RGB2LAB)[seen]),
         )
 
+    if previous is not None:
+        cand = aligned(previous)
+        if cand is not None and cand.colour >= conf.search_min_colour:
+            cand = _polish(cand, aligned, surface, conf) if conf.search_polish else cand
+            if cand.passes(conf):
+                return Found(cand.fit_pose, cand.visible, cand.see_through, cand.colour, cand.match, followed=True)
+    zs = _block_depth(depth_m, LEVEL, lmap.shape)
+    f_px = 0.5 * (K[0, 0] + K[1, 1])
+    places = _places(lmap, zs, sil, f_px, diameter_m, rgb.shape[0], conf)
     found = []
     for _score, view_id, angle, span, x, y in places:
         start = pose_from_view(lib, view_id, angle, f_px * diameter_m / span, (x, y), K)
@@ -318,7 +332,7 @@ def search(
             best = cand
     if best is None:
         return None
-    return Found(best.fit_pose, best.visible, best.see_through, best.colour)
+    return Found(best.fit_pose, best.visible, best.see_through, best.colour, best.match)
 
 
 def _same_pose(A: np.ndarray, B: np.ndarray, surface: Surface, diameter_m: float) -> bool:

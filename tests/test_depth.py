@@ -399,3 +399,30 @@ def test_estimator_depth_search_replaces_a_missing_pose(cracker_model, cracker_l
             assert rec.ok and rec.reason.startswith("found by the depth search (no SIFT pose)")
             assert 0 < rec.confidence <= 0.5 and rec.timings["depth"] > 0
             assert _adds_mm(cracker_model, rec.cam_from_model, T) < 10
+
+
+def test_depth_search_follows_its_pose_into_the_next_frame(cracker_model, cracker_library):
+    """With tracking on, the next frame of a sequence starts from the pose the search found (the object
+    moved 1 cm): aligned and polished, not searched for again; a frame that does not follow is searched."""
+    conf = load_estimator_config({"features": {"n_features": 4}, "depth": {"enabled": True, "search": True}})
+    est = PoseEstimator(
+        conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
+    )
+    T0 = _pose(cracker_model)
+    T1 = T0.copy()
+    T1[:3, 3] += [0.01, 0.0, 0.0]
+    reasons = []
+    for im_id, T in [(0, T0), (1, T1), (3, T0)]:
+        rgb, depth = _search_scene(cracker_model, T)
+        frame = Frame(
+            "syn", 0, im_id, im_id * 33_000_000, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
+            depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
+        )  # fmt: skip
+        (rec,) = est.estimate_frame(frame, [cracker_model.name])
+        assert rec.ok and _adds_mm(cracker_model, rec.cam_from_model, T) < 10
+        reasons.append(rec.reason.split(" (")[0])
+    assert reasons == [
+        "found by the depth search",
+        "followed from the previous frame's depth search",
+        "found by the depth search",
+    ]
