@@ -129,7 +129,8 @@ class PoseEstimator:
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._surfaces: dict[str, Surface] = {}
         self._silhouettes: dict[str, Silhouettes] = {}
-        self._found: dict[str, tuple[Frame, np.ndarray]] = {}  # the depth search's last pose of each object
+        # The depth search's last pose of each object: ((scene_id, im_id, stamp_ns, K), pose).
+        self._found: dict[str, tuple[tuple, np.ndarray]] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
         self._prev: dict | None = None
@@ -691,6 +692,7 @@ class PoseEstimator:
         usable = [r for r in records if r.obj_name in self.models and self.renderer is not None]
         todo = [r for r in usable if r.ok]
         lost = [r for r in usable if r.status in ("too_few_matches", "pnp_failed")] if dc.search else []
+        contradicted: set[str] = set()
         if not todo and not lost:
             return
         t0 = time.perf_counter()
@@ -724,6 +726,7 @@ class PoseEstimator:
                 rec.status, rec.reason = "pnp_failed", fit.reason
                 if dc.search:
                     lost.append(rec)
+                    contradicted.add(name)
             elif fit.aligned:
                 rec.cam_from_model = fit.cam_from_model
             else:
@@ -731,11 +734,18 @@ class PoseEstimator:
             rec.timings["depth"] = t_decode + time.perf_counter() - t0
         for rec in lost:
             t0 = time.perf_counter()
-            self._search(rec, frame, rgb, full)
+            self._search(
+                rec,
+                frame,
+                rgb,
+                full,
+                "the depth contradicted the RGB pose" if rec.obj_name in contradicted else "no SIFT pose",
+            )
             rec.timings["depth"] = rec.timings.get("depth", 0.0) + time.perf_counter() - t0
 
-    def _search(self, rec: PoseRecord, frame: Frame, rgb: np.ndarray, depth: np.ndarray) -> None:
-        """``depth.search`` for one object without a pose (:func:`batchpose.search.search`)."""
+    def _search(self, rec: PoseRecord, frame: Frame, rgb: np.ndarray, depth: np.ndarray, why: str) -> None:
+        """``depth.search`` for one object without a pose (:func:`batchpose.search.search`); ``why`` it has none
+        goes into the reason of a pose found."""
         name, cam = rec.obj_name, frame.camera
         if name not in self._silhouettes:
             lib = self.libraries[name]
@@ -761,12 +771,12 @@ class PoseEstimator:
         if found is None:
             self._found.pop(name, None)
             return
-        self._found[name] = (frame, found.cam_from_model)
+        self._found[name] = ((frame.scene_id, frame.im_id, frame.stamp_ns, cam.K.copy()), found.cam_from_model)
         rec.status, rec.cam_from_model = "ok", found.cam_from_model
         rec.confidence = 0.5 * found.visible * (1.0 - found.see_through)
         how = "followed from the previous frame's" if found.followed else "found by the"
         rec.reason = (
-            f"{how} depth search (no SIFT pose): {100 * found.visible:.0f}% of it seen at its surface, "
+            f"{how} depth search ({why}): {100 * found.visible:.0f}% of it seen at its surface, "
             f"colour log-odds {found.colour:.1f}, texture match {found.match:.2f}"
         )
 
@@ -775,12 +785,12 @@ class PoseEstimator:
         next one of its sequence (same scene and camera, ``im_id`` + 1, within ``track.max_gap_s``)."""
         if name not in self._found or not self.tracking():
             return None
-        prev, pose = self._found[name]
-        gap_s = (frame.stamp_ns - prev.stamp_ns) * 1e-9
+        (scene_id, im_id, stamp_ns, K), pose = self._found[name]
+        gap_s = (frame.stamp_ns - stamp_ns) * 1e-9
         follows = (
-            prev.scene_id == frame.scene_id
-            and frame.im_id == prev.im_id + 1
-            and np.array_equal(prev.camera.K, frame.camera.K)
+            scene_id == frame.scene_id
+            and frame.im_id == im_id + 1
+            and np.array_equal(K, frame.camera.K)
             and 0 < gap_s <= self.conf.track.max_gap_s
         )
         return pose if follows else None

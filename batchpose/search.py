@@ -26,7 +26,10 @@ something at the distance that size implies. For such an object:
    with the frame at least ``search_min_match`` (the texture's layout, not only its colours); otherwise
    the object stays not found.
 
-reports/ACCURACY.md ("Session 8") has the figures; on objects absent from a frame it must, and on the
+With tracking on, the estimator hands the search the pose it found in the previous frame of the sequence
+(``previous``): aligned and polished, it is kept when it passes the checks, and the frame is not searched.
+
+reports/ACCURACY.md ("Session 8", "Session 9") has the figures; on objects absent from a frame it must, and on the
 held-out set did, find nothing.
 """
 
