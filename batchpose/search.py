@@ -15,16 +15,17 @@ something at the distance that size implies. For such an object:
 3. **align**: the ``search_hypotheses`` best places, and each turned 180° about the mesh's principal axes,
    are aligned to the depth (:func:`batchpose.depth.align_to_depth`, allowed to move further than a
    check of an RGB pose is); alignments whose seen pixels do not look like the object are dropped;
-4. **polish**: the ``search_polish`` best-fitting distinct alignments are turned about their principal
-   axes (20°, 10°, 5°) and aligned again while that fits the depth better. "Fits" counts only the
-   silhouette's pixels not hidden by something nearer: a bottle behind a box is judged by its visible
-   half (an alignment alone stops in the nearest minimum, e.g. the bottle turned so that its base sits
-   where the box is);
+4. **polish**: the ``search_polish`` best-fitting distinct alignments whose texture lines up at all (the
+   mesh rendered there correlates positively with the frame) are turned about their principal axes (20°,
+   10°, 5°) and aligned again while that fits better. "Fits" counts only the silhouette's pixels not
+   hidden by something nearer — a bottle behind a box is judged by its visible half (an alignment alone
+   stops in the nearest minimum, e.g. the bottle turned so that its base sits where the box is) — plus a
+   little of the texture's correlation, which tells a can's front from its back where the depth cannot;
 5. **verify**: the best polished pose is kept if the sensor sees at least ``search_min_visible`` of its
    silhouette at its surface (within 1 cm), at most ``search_max_see_through`` past it, its seen
-   pixels' mean colour log-odds is at least ``search_min_colour`` and the mesh rendered there correlates
-   with the frame at least ``search_min_match`` (the texture's layout, not only its colours); otherwise
-   the object stays not found.
+   pixels' mean colour log-odds against the frame outside the silhouette is at least ``search_min_colour``
+   and the mesh rendered there correlates with the frame at least ``search_min_match`` (the texture's
+   layout, not only its colours); otherwise the object stays not found.
 
 With tracking on, the estimator hands the search the pose it found in the previous frame of the sequence
 (``previous``): aligned and polished, it is kept when it passes the checks, and the frame is not searched.
@@ -56,6 +57,8 @@ LEVEL = 4
 SEEN_M = 0.01
 #: The alignments' Levenberg damping (relative; see ``depth.damping``, which is heavier for RGB poses).
 SEARCH_DAMPING = 0.001
+#: Weight of the texture match in a hypothesis's score (its depth fit is within 0.01 of 1 when right).
+MATCH_WEIGHT = 0.1
 
 
 def colour_bins(rgb: np.ndarray) -> np.ndarray:
@@ -212,8 +215,9 @@ class _Candidate:
 
     @property
     def score(self) -> float:
-        """How well the depth fits: occluders in front of the object do not count against it."""
-        return self.unhidden - 2.0 * self.see_through
+        """How well the depth fits (occluders in front of the object do not count against it), and a little how
+        well the texture does: the depth cannot tell a can's or a bottle's front from its back."""
+        return self.unhidden - 2.0 * self.see_through + MATCH_WEIGHT * self.match
 
     def passes(self, conf: DepthConfig) -> bool:
         return (
@@ -222,6 +226,17 @@ class _Candidate:
             and self.colour >= conf.search_min_colour
             and self.match >= conf.search_min_match
         )
+
+
+def _colour_odds(
+    bins: np.ndarray, frame_counts: np.ndarray, hist: np.ndarray, sil: np.ndarray, seen: np.ndarray
+) -> float:
+    """Mean log-odds of the seen pixels' colours under the object's histogram against the frame's outside the
+    silhouette (the frame's own histogram would count a large object's colours as background)."""
+    bg = frame_counts - np.bincount(bins[sil], minlength=N_BINS)
+    bg = bg / max(bg.sum(), 1)
+    odds = np.log((hist + 1e-3) / (bg + 1e-3)).clip(-3, 3)
+    return float(odds[bins[seen]].mean())
 
 
 def _correlation(a: np.ndarray, b: np.ndarray) -> float:
@@ -270,7 +285,8 @@ def search(
     lmap = _colour_map(rgb, sil.hist, LEVEL)
     # Hypotheses start further off than an RGB pose; light damping lets the depth turn them.
     wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0, damping=SEARCH_DAMPING)
-    colour = cv2.resize(lmap, (rgb.shape[1], rgb.shape[0]), interpolation=cv2.INTER_NEAREST)
+    bins = colour_bins(rgb)
+    frame_counts = np.bincount(bins.ravel(), minlength=N_BINS)
 
     lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
     last: dict = {}
@@ -301,13 +317,13 @@ def search(
             float(seen.sum()) / n,
             float(seen.sum()) / max(n - int(hidden.sum()), 1),
             fit.see_through,
-            float(colour[seen].mean()),
+            _colour_odds(bins, frame_counts, sil.hist, sil_px, seen),
             _correlation(lab[seen], cv2.cvtColor(ren_rgb, cv2.COLOR_RGB2LAB)[seen]),
         )
 
     if previous is not None:
         cand = aligned(previous)
-        if cand is not None and cand.colour >= conf.search_min_colour:
+        if cand is not None and cand.match > 0.0:
             cand = _polish(cand, aligned, surface, conf) if conf.search_polish else cand
             if cand.passes(conf):
                 return Found(cand.fit_pose, cand.visible, cand.see_through, cand.colour, cand.match, followed=True)
@@ -320,7 +336,7 @@ def search(
         found += [
             c
             for c in (aligned(start @ F) for F in [np.eye(4), *flips])
-            if c is not None and c.colour >= conf.search_min_colour
+            if c is not None and c.match > 0.0  # turned or misplaced: the texture does not line up at all
         ]
     found.sort(key=lambda c: -c.score)
     distinct: list[_Candidate] = []  # alignments from several places often end at the same pose
@@ -355,7 +371,7 @@ def _polish(cand: _Candidate, aligned, surface: Surface, conf: DepthConfig) -> _
         better = None
         for turn in _turns(surface, np.deg2rad(step)):
             c = aligned(cand.fit_pose @ turn)
-            if c is not None and c.colour >= conf.search_min_colour and c.score > (better or cand).score + 1e-3:
+            if c is not None and c.score > (better or cand).score + 1e-3:
                 better = c
         if better is None:
             step /= 2
