@@ -733,6 +733,8 @@ class PoseEstimator:
                 rec.reason = f"depth not used: {fit.reason}: RGB pose"
             rec.timings["depth"] = t_decode + time.perf_counter() - t0
         for rec in lost:
+            if not self._search_due(rec.obj_name, frame):
+                continue
             t0 = time.perf_counter()
             self._search(
                 rec,
@@ -779,6 +781,14 @@ class PoseEstimator:
             f"{how} depth search ({why}): {100 * found.visible:.0f}% of it seen at its surface, "
             f"colour log-odds {found.colour:.1f}, texture match {found.match:.2f}"
         )
+
+    def _search_due(self, name: str, frame: Frame) -> bool:
+        """Whether to run the depth search for ``name`` in this frame: always without tracking, and when it
+        follows a pose the search found; for an object lost since earlier frames only when its RGB estimate
+        was a full one (every ``track.lost_full_every``-th frame), as an absent object costs seconds a search."""
+        if not self.tracking() or name not in self._lost or self._previous_found(name, frame) is not None:
+            return True
+        return (self._lost[name] - 1) % self.conf.track.lost_full_every == 0
 
     def _previous_found(self, name: str, frame: Frame) -> np.ndarray | None:
         """The depth search's pose of ``name`` in the previous frame, when tracking is on and ``frame`` is the

@@ -426,3 +426,30 @@ def test_depth_search_follows_its_pose_into_the_next_frame(cracker_model, cracke
         "followed from the previous frame's depth search",
         "found by the depth search",
     ]
+
+
+def test_depth_search_for_a_lost_object_only_with_its_full_estimates(cracker_model, cracker_library):
+    """With tracking on, an object lost since earlier frames (here: absent) is searched for only in the
+    frames where its RGB estimate is a full one (every track.lost_full_every-th), not in every frame."""
+    from batchpose.mesh import load_mesh
+    from tests.conftest import GELATIN
+
+    other = load_mesh(GELATIN)
+    conf = load_estimator_config(
+        {"features": {"n_features": 4}, "track": {"lost_full_every": 3}, "depth": {"enabled": True, "search": True}}
+    )
+    est = PoseEstimator(
+        conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
+    )
+    searched = []
+    search = est._search
+    est._search = lambda rec, frame, *a: searched.append(frame.im_id) or search(rec, frame, *a)
+    rgb, depth = _search_scene(other, _pose(other))
+    for im_id in range(5):
+        frame = Frame(
+            "syn", 0, im_id, im_id * 33_000_000, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
+            depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
+        )  # fmt: skip
+        (rec,) = est.estimate_frame(frame, [cracker_model.name])
+        assert not rec.ok
+    assert searched == [0, 3]
