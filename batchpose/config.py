@@ -331,8 +331,9 @@ class DepthConfig:
     search_hypotheses: int = 5
     """Places aligned to the depth (each also turned 180 degrees about the mesh's three principal axes)."""
     search_polish: int = 3
-    """The best-fitting this-many hypotheses that pass the checks below are turned about their principal axes
-    and aligned again while that fits the depth better (0: keep the best as aligned)."""
+    """The best-fitting this-many distinct hypotheses whose texture lines up at all are turned about their
+    principal axes (20, 10, 5 degrees) and aligned again while that fits better (0: keep the best as
+    aligned); the best that passes the checks below is kept."""
     search_min_visible: float = 0.4
     """Keep a found pose only if the sensor sees at least this fraction of its silhouette at its surface ..."""
     search_max_see_through: float = 0.1

@@ -219,6 +219,9 @@ class _Candidate:
         well the texture does: the depth cannot tell a can's or a bottle's front from its back."""
         return self.unhidden - 2.0 * self.see_through + MATCH_WEIGHT * self.match
 
+    def found(self, followed: bool = False) -> Found:
+        return Found(self.fit_pose, self.visible, self.see_through, self.colour, self.match, followed)
+
     def passes(self, conf: DepthConfig) -> bool:
         return (
             self.visible >= conf.search_min_visible
@@ -246,17 +249,25 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-9))
 
 
-def _turns(surface: Surface, step_rad: float) -> list[np.ndarray]:
-    """Model-frame turns by +-``step_rad`` about the surface's principal axes through its centroid."""
+#: The polish's turn sizes (degrees), largest first.
+POLISH_STEPS_DEG = (20.0, 10.0, 5.0)
+
+
+def _turns(surface: Surface) -> list[list[np.ndarray]]:
+    """For each of :data:`POLISH_STEPS_DEG`: model-frame turns by +- that about the surface's principal axes
+    through its centroid."""
     c = surface.points.mean(axis=0)
     _, axes = np.linalg.eigh(np.cov((surface.points - c).T))
     out = []
-    for a in axes.T:
-        for sign in (1.0, -1.0):
-            T = np.eye(4)
-            T[:3, :3] = cv2.Rodrigues(sign * step_rad * a)[0]
-            T[:3, 3] = c - T[:3, :3] @ c
-            out.append(T)
+    for step in POLISH_STEPS_DEG:
+        turns = []
+        for a in axes.T:
+            for sign in (1.0, -1.0):
+                T = np.eye(4)
+                T[:3, :3] = cv2.Rodrigues(sign * np.deg2rad(step) * a)[0]
+                T[:3, 3] = c - T[:3, :3] @ c
+                turns.append(T)
+        out.append(turns)
     return out
 
 
@@ -282,13 +293,13 @@ def search(
         previous: the pose the search found in the previous frame of a sequence: aligned and polished
             first, and kept without searching the frame when it passes the checks.
     """
-    lmap = _colour_map(rgb, sil.hist, LEVEL)
     # Hypotheses start further off than an RGB pose; light damping lets the depth turn them.
     wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0, damping=SEARCH_DAMPING)
     bins = colour_bins(rgb)
     frame_counts = np.bincount(bins.ravel(), minlength=N_BINS)
 
     lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+    turns = _turns(surface)
     last: dict = {}
 
     def rendered(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # the alignment's last render is the one judged
@@ -324,9 +335,10 @@ def search(
     if previous is not None:
         cand = aligned(previous)
         if cand is not None and cand.match > 0.0:
-            cand = _polish(cand, aligned, surface, conf) if conf.search_polish else cand
+            cand = _polish(cand, aligned, turns) if conf.search_polish else cand
             if cand.passes(conf):
-                return Found(cand.fit_pose, cand.visible, cand.see_through, cand.colour, cand.match, followed=True)
+                return cand.found(followed=True)
+    lmap = _colour_map(rgb, sil.hist, LEVEL)
     zs = _block_depth(depth_m, LEVEL, lmap.shape)
     f_px = 0.5 * (K[0, 0] + K[1, 1])
     places = _places(lmap, zs, sil, f_px, diameter_m, rgb.shape[0], conf)
@@ -339,42 +351,40 @@ def search(
             if c is not None and c.match > 0.0  # turned or misplaced: the texture does not line up at all
         ]
     found.sort(key=lambda c: -c.score)
+    centre = surface.points.mean(axis=0)
     distinct: list[_Candidate] = []  # alignments from several places often end at the same pose
     for cand in found:
-        if all(not _same_pose(cand.fit_pose, d.fit_pose, surface, diameter_m) for d in distinct):
+        if all(not _same_pose(cand.fit_pose, d.fit_pose, centre, diameter_m) for d in distinct):
             distinct.append(cand)
     best = None
     for cand in distinct[: max(conf.search_polish, 1)]:
         if conf.search_polish:
-            cand = _polish(cand, aligned, surface, conf)
+            cand = _polish(cand, aligned, turns)
         if cand.passes(conf) and (best is None or cand.score > best.score):
             best = cand
-    if best is None:
-        return None
-    return Found(best.fit_pose, best.visible, best.see_through, best.colour, best.match)
+    return None if best is None else best.found()
 
 
-def _same_pose(A: np.ndarray, B: np.ndarray, surface: Surface, diameter_m: float) -> bool:
-    """Centres within a tenth of the diameter and orientations within 30 degrees."""
-    c = surface.points.mean(axis=0)
+def _same_pose(A: np.ndarray, B: np.ndarray, c: np.ndarray, diameter_m: float) -> bool:
+    """Centres (``c`` in the model frame) within a tenth of the diameter and orientations within 30 degrees."""
     moved = np.linalg.norm(A[:3, :3] @ c + A[:3, 3] - B[:3, :3] @ c - B[:3, 3])
     turned = np.degrees(np.linalg.norm(cv2.Rodrigues(A[:3, :3] @ B[:3, :3].T)[0]))
     return bool(moved < 0.1 * diameter_m and turned < 30.0)
 
 
-def _polish(cand: _Candidate, aligned, surface: Surface, conf: DepthConfig) -> _Candidate:
-    """Turn the candidate about its principal axes (20, 10, 5 degrees), each turn aligned to the depth again,
-    while that fits the depth better and still passes the checks: an alignment stops in the nearest
-    minimum, often a bottle turned about its axis with its base where the occluder in front of it is."""
-    step = 20.0
-    while step >= 5.0:
+def _polish(cand: _Candidate, aligned, turns: list[list[np.ndarray]]) -> _Candidate:
+    """Turn the candidate by each of ``turns`` (:func:`_turns`, largest first), each turn aligned to the depth
+    again, while that scores better: an alignment stops in the nearest minimum, often a bottle turned about
+    its axis with its base where the occluder in front of it is."""
+    level = 0
+    while level < len(turns):
         better = None
-        for turn in _turns(surface, np.deg2rad(step)):
+        for turn in turns[level]:
             c = aligned(cand.fit_pose @ turn)
             if c is not None and c.score > (better or cand).score + 1e-3:
                 better = c
         if better is None:
-            step /= 2
+            level += 1
         else:
             cand = better
     return cand

@@ -199,12 +199,7 @@ def test_estimator_aligns_its_poses_to_the_depth_image(cracker_model, cracker_li
     results = {}
     for enabled in (False, True):
         conf = load_estimator_config({"depth": {"enabled": enabled}, "track": {"enabled": False}})
-        est = PoseEstimator(
-            conf,
-            {cracker_model.name: cracker_library},
-            models={cracker_model.name: cracker_model},
-            renderer=get_renderer(),
-        )
+        est = _estimator(conf, cracker_model, cracker_library)
         (rec,) = est.estimate_frame(good, [cracker_model.name])
         assert rec.ok
         results[enabled] = _add_mm(cracker_model, rec.cam_from_model, T)
@@ -340,6 +335,18 @@ def _adds_mm(model, A, B) -> float:
     return 1000 * float(cKDTree(pts @ A[:3, :3].T + A[:3, 3]).query(pts @ B[:3, :3].T + B[:3, 3])[0].mean())
 
 
+def _estimator(conf, model, library) -> PoseEstimator:
+    return PoseEstimator(conf, {model.name: library}, models={model.name: model}, renderer=get_renderer())
+
+
+def _rgbd_frame(rgb, depth, im_id: int = 0) -> Frame:
+    """One frame of a 30 Hz sequence with its depth (32FC1, metres)."""
+    return Frame(
+        "syn", 0, im_id, im_id * 33_000_000, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
+        depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
+    )  # fmt: skip
+
+
 def test_depth_search_finds_the_object_by_colour_and_depth(cracker_model, cracker_library):
     T = _pose(cracker_model)
     rgb, depth = _search_scene(cracker_model, T)
@@ -378,20 +385,12 @@ def test_estimator_depth_search_replaces_a_missing_pose(cracker_model, cracker_l
     """SIFT starved (4 keypoints a frame): no RGB pose; with depth.search the object is found, and says so."""
     T = _pose(cracker_model)
     rgb, depth = _search_scene(cracker_model, T)
-    frame = Frame(
-        "syn", 0, 0, 0, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
-        depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
-    )  # fmt: skip
+    frame = _rgbd_frame(rgb, depth)
     for search in (False, True):
         conf = load_estimator_config(
             {"features": {"n_features": 4}, "track": {"enabled": False}, "depth": {"enabled": True, "search": search}}
         )
-        est = PoseEstimator(
-            conf,
-            {cracker_model.name: cracker_library},
-            models={cracker_model.name: cracker_model},
-            renderer=get_renderer(),
-        )
+        est = _estimator(conf, cracker_model, cracker_library)
         (rec,) = est.estimate_frame(frame, [cracker_model.name])
         if not search:
             assert not rec.ok
@@ -405,20 +404,14 @@ def test_depth_search_follows_its_pose_into_the_next_frame(cracker_model, cracke
     """With tracking on, the next frame of a sequence starts from the pose the search found (the object
     moved 1 cm): aligned and polished, not searched for again; a frame that does not follow is searched."""
     conf = load_estimator_config({"features": {"n_features": 4}, "depth": {"enabled": True, "search": True}})
-    est = PoseEstimator(
-        conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
-    )
+    est = _estimator(conf, cracker_model, cracker_library)
     T0 = _pose(cracker_model)
     T1 = T0.copy()
     T1[:3, 3] += [0.01, 0.0, 0.0]
     reasons = []
     for im_id, T in [(0, T0), (1, T1), (3, T0)]:
         rgb, depth = _search_scene(cracker_model, T)
-        frame = Frame(
-            "syn", 0, im_id, im_id * 33_000_000, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
-            depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
-        )  # fmt: skip
-        (rec,) = est.estimate_frame(frame, [cracker_model.name])
+        (rec,) = est.estimate_frame(_rgbd_frame(rgb, depth, im_id), [cracker_model.name])
         assert rec.ok and _adds_mm(cracker_model, rec.cam_from_model, T) < 10
         reasons.append(rec.reason.split(" (")[0])
     assert reasons == [
@@ -438,18 +431,12 @@ def test_depth_search_for_a_lost_object_only_with_its_full_estimates(cracker_mod
     conf = load_estimator_config(
         {"features": {"n_features": 4}, "track": {"lost_full_every": 3}, "depth": {"enabled": True, "search": True}}
     )
-    est = PoseEstimator(
-        conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
-    )
+    est = _estimator(conf, cracker_model, cracker_library)
     searched = []
     search = est._search
     est._search = lambda rec, frame, *a: searched.append(frame.im_id) or search(rec, frame, *a)
     rgb, depth = _search_scene(other, _pose(other))
     for im_id in range(5):
-        frame = Frame(
-            "syn", 0, im_id, im_id * 33_000_000, CAM, "png", cv2.imencode(".png", rgb[:, :, ::-1])[1].tobytes(),
-            depth_format="32FC1", depth_data=depth.astype("<f4").tobytes(), depth_scale_m=1.0,
-        )  # fmt: skip
-        (rec,) = est.estimate_frame(frame, [cracker_model.name])
+        (rec,) = est.estimate_frame(_rgbd_frame(rgb, depth, im_id), [cracker_model.name])
         assert not rec.ok
     assert searched == [0, 3]
