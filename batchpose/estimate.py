@@ -37,6 +37,8 @@ from batchpose.track import Track, anchor_to_render, follow_all, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
+#: Statuses of an object the frame shows no pose of, which ``depth.search`` looks for.
+NOT_FOUND = ("too_few_matches", "pnp_failed", "low_confidence")
 
 
 def confidence(n_inliers: int, median_residual_px: float, conf: EstimatorConfig) -> float:
@@ -308,6 +310,12 @@ class PoseEstimator:
         rec.median_residual_px = res.median_residual_px
         rec.inliers_px = x_used[res.inliers]
         rec.confidence = confidence(rec.n_inliers, rec.median_residual_px, conf)
+        if rec.confidence < conf.min_confidence:
+            rec.status = "low_confidence"
+            rec.reason = (
+                f"confidence {rec.confidence:.2f} below estimator.min_confidence {conf.min_confidence:g} "
+                f"({rec.n_inliers} inliers, median residual {rec.median_residual_px:.1f} px)"
+            )
         return rec
 
     def _match(self, name, xy_q, desc_q, query_index, roi, prefilter_views: int) -> Correspondences:
@@ -686,15 +694,15 @@ class PoseEstimator:
     def _use_depth(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``depth.enabled``: check each found pose against the frame's depth image and align it to the depth
         (:func:`batchpose.depth.align_to_depth`). Tracks keep following the RGB poses. A pose the depth
-        contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in ``reason``.
-        With ``depth.search``, an object then without a pose is looked for by colour and depth."""
+        contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in ``reason``; a
+        low-confidence pose (``min_confidence``) it aligns is reported ok. With ``depth.search``, an object then
+        without a pose is looked for by colour and depth."""
         dc = self.conf.depth
         usable = [r for r in records if r.obj_name in self.models and self.renderer is not None]
-        todo = [r for r in usable if r.ok]
-        lost = [r for r in usable if r.status in ("too_few_matches", "pnp_failed")] if dc.search else []
-        contradicted: set[str] = set()
-        if not todo and not lost:
+        todo = [r for r in usable if r.ok or r.status == "low_confidence"]
+        if not todo and not (dc.search and any(r.status in NOT_FOUND for r in usable)):
             return
+        contradicted: set[str] = set()
         t0 = time.perf_counter()
         try:
             full = decode_depth(frame)
@@ -724,15 +732,15 @@ class PoseEstimator:
             )
             if fit.contradicted:
                 rec.status, rec.reason = "pnp_failed", fit.reason
-                if dc.search:
-                    lost.append(rec)
-                    contradicted.add(name)
+                contradicted.add(name)
             elif fit.aligned:
                 rec.cam_from_model = fit.cam_from_model
-            else:
+                if not rec.ok:
+                    rec.status, rec.reason = "ok", f"RGB confidence {rec.confidence:.2f}, aligned to the depth image"
+            elif rec.ok:
                 rec.reason = f"depth not used: {fit.reason}: RGB pose"
             rec.timings["depth"] = t_decode + time.perf_counter() - t0
-        for rec in lost:
+        for rec in [r for r in usable if r.status in NOT_FOUND] if dc.search else []:
             if not self._search_due(rec.obj_name, frame):
                 continue
             t0 = time.perf_counter()

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pandas as pd
 import pytest
 import scipy.io
 
+from batchpose.bop import poses_to_bop
 from batchpose.config import ConfigError, DepthConfig, EstimatorConfig, from_dict, load_estimator_config
 from batchpose.datasets import BopFrameSource, YcbvFrameSource
 from batchpose.depth import Surface, align_to_depth
@@ -209,6 +211,28 @@ def test_estimator_aligns_its_poses_to_the_depth_image(cracker_model, cracker_li
             assert bad.ok and bad.reason.startswith("depth image not used (syn (depth): depth PNG must be")
     assert results[False] > 20  # ~3 cm: where the image puts it
     assert results[True] < 3
+
+
+def test_a_pose_below_min_confidence_is_not_reported_unless_the_depth_vouches_for_it(cracker_model, cracker_library):
+    """estimator.min_confidence: an RGB pose less confident is status low_confidence (pose kept for inspection,
+    never in poses.csv); with depth.enabled, the depth image aligning it makes it ok."""
+    T = _pose(cracker_model)
+    rgb, depth = _search_scene(cracker_model, T)
+    frame = _rgbd_frame(rgb, depth)
+    recs = {}
+    for enabled in (False, True):
+        conf = load_estimator_config(
+            {"min_confidence": 0.999, "depth": {"enabled": enabled}, "track": {"enabled": False}}
+        )
+        (recs[enabled],) = _estimator(conf, cracker_model, cracker_library).estimate_frame(frame, [cracker_model.name])
+    low = recs[False]
+    assert low.status == "low_confidence" and 0.5 < low.confidence < 0.999
+    assert low.reason.startswith(f"confidence {low.confidence:.2f} below estimator.min_confidence 0.999 (")
+    assert _adds_mm(cracker_model, low.cam_from_model, T) < 10  # kept in poses.parquet
+    assert poses_to_bop(pd.DataFrame([low.to_row()])).empty
+    vouched = recs[True]
+    assert vouched.ok and vouched.reason == f"RGB confidence {vouched.confidence:.2f}, aligned to the depth image"
+    assert _adds_mm(cracker_model, vouched.cam_from_model, T) < 5
 
 
 def test_shared_ycbv_dev_depth_frames_decode():
