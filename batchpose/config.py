@@ -350,6 +350,48 @@ class DepthConfig:
 
 
 @dataclass(frozen=True)
+class PlaneConfig:
+    """Looking for an object SIFT missed on the surface the found objects rest on (batchpose's addition; see
+    :mod:`batchpose.plane`). Runs only for an object without a pose in a frame where at least
+    ``min_objects`` others were found confidently and rest on one plane; not where ``depth.search`` has a depth
+    image to search with."""
+
+    enabled: bool = True
+    min_objects: int = 2
+    """Fewest confidently found objects that define a support plane ..."""
+    min_confidence: float = 0.5
+    """... each at least this confident ..."""
+    max_spread_m: float = 0.03
+    """... whose lowest points along the plane's normal are at most this far apart (poses on real frames are
+    1-3 % off in distance; ycbv_dev's video 0001: 11-13 mm)."""
+    plane_candidates: int = 64
+    """Normals tried: each found object's this many largest convex-hull faces, turned downwards."""
+    min_stable: float = 0.02
+    """Resting faces of the object looked for: its stable poses (trimesh) at least this probable. A bottle
+    upright is one of its less probable ones (0.04 for the mustard bottle)."""
+    angles: int = 12
+    """Turns about the plane's normal tried for each resting face."""
+    min_span_px: float = 12.0
+    """Places where the object would span fewer pixels are not searched."""
+    starts: int = 4
+    """Best distinct placements of the coarse search refined."""
+    colour_weight: float = 0.2
+    """Weight of the mean colour log-odds against the texture correlation in the refinement's score."""
+    min_visible: float = 0.3
+    """A placement is kept if at least this fraction of its silhouette is not hidden by a found object ..."""
+    min_colour: float = 0.5
+    """... those pixels' mean colour log-odds (the object's histogram against the frame's outside the found
+    objects) is at least this ..."""
+    min_match: float = 0.35
+    """... the mesh rendered there correlates (Lab) with the frame over them at least this well ..."""
+    min_contrast: float = 1.5
+    """... and it stands out: their mean colour log-odds exceeds that of the 4-px ring around the silhouette
+    (found objects left out) by at least this. On ycbv_dev the mustard bottle found 3.0-3.9; objects the
+    frame does not show, placed where the colours and texture fit best (a white marker on the white table,
+    a can on the mustard bottle), 0.3-1.0."""
+
+
+@dataclass(frozen=True)
 class EstimatorConfig:
     """Everything that decides a pose, one section per stage."""
 
@@ -391,6 +433,7 @@ class EstimatorConfig:
     fine: FineConfig = field(default_factory=FineConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
+    plane: PlaneConfig = field(default_factory=PlaneConfig)
 
 
 _CHOICES = {
@@ -520,6 +563,25 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
     ):
         if not ok:
             raise ConfigError(f"{where}: depth.{key} must {need}, got {getattr(dc, key)}")
+    pc = conf.plane
+    for key, ok, need in (
+        ("min_objects", pc.min_objects >= 2, "be >= 2"),
+        ("min_confidence", 0 <= pc.min_confidence <= 1, "be in [0, 1]"),
+        ("max_spread_m", pc.max_spread_m > 0, "be positive"),
+        ("plane_candidates", pc.plane_candidates >= 1, "be >= 1"),
+        ("min_stable", 0 <= pc.min_stable <= 1, "be in [0, 1]"),
+        ("angles", pc.angles >= 1, "be >= 1"),
+        ("min_span_px", pc.min_span_px >= 1, "be >= 1"),
+        ("starts", pc.starts >= 1, "be >= 1"),
+        ("colour_weight", pc.colour_weight >= 0, "be >= 0"),
+        ("min_visible", 0 < pc.min_visible <= 1, "be in (0, 1]"),
+        ("min_match", -1 <= pc.min_match <= 1, "be in [-1, 1]"),
+        ("min_contrast", pc.min_contrast >= 0, "be >= 0"),
+    ):
+        if not ok:
+            raise ConfigError(f"{where}: plane.{key} must {need}, got {getattr(pc, key)}")
+    if not 0 <= conf.min_confidence <= 1:
+        raise ConfigError(f"{where}: min_confidence must be in [0, 1], got {conf.min_confidence}")
     if conf.strong_inliers < 0:
         raise ConfigError(f"{where}: strong_inliers must be >= 0, got {conf.strong_inliers}")
     if not 0 < conf.gnc.gamma < 1:

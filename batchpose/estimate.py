@@ -29,6 +29,7 @@ from batchpose.errors import BatchposeError, ImageError
 from batchpose.features import detect, detect_shapes, make_sift, to_gray
 from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image
 from batchpose.gnc_pnp import solve_pose
+from batchpose.plane import Target, resting_faces, search_plane, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.search import Silhouettes, search
@@ -131,8 +132,10 @@ class PoseEstimator:
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
         self._surfaces: dict[str, Surface] = {}
         self._silhouettes: dict[str, Silhouettes] = {}
-        # The depth search's last pose of each object: ((scene_id, im_id, stamp_ns, K), pose).
+        self._targets: dict[str, Target] = {}
+        # The depth search's and the plane search's last pose of each object: ((scene_id, im_id, stamp_ns, K), pose).
         self._found: dict[str, tuple[tuple, np.ndarray]] = {}
+        self._placed: dict[str, tuple[tuple, np.ndarray]] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
         self._prev: dict | None = None
@@ -550,6 +553,7 @@ class PoseEstimator:
         self._lost = {}
         self._prev = None
         self._found = {}
+        self._placed = {}
 
     def tracking(self) -> bool:
         """True when :meth:`estimate_frame` follows confident poses into the next frames (``track.*``)."""
@@ -757,26 +761,18 @@ class PoseEstimator:
         """``depth.search`` for one object without a pose (:func:`batchpose.search.search`); ``why`` it has none
         goes into the reason of a pose found."""
         name, cam = rec.obj_name, frame.camera
-        if name not in self._silhouettes:
-            lib = self.libraries[name]
-            self._silhouettes[name] = Silhouettes.of(
-                lambda T: self._render(name, T, Camera(lib.K, lib.width, lib.height)),
-                lib,
-                self.models[name].diameter_m,
-                self.conf.depth.search_view_step,
-            )
         found = search(
             rgb,
             depth,
             cam.K,
             self.libraries[name],
-            self._silhouettes[name],
+            self._silhouettes_of(name),
             self._surface(name),
             self._flips(name),
             self.models[name].diameter_m,
             lambda T: self._render(name, T, cam),
             self.conf.depth,
-            self._previous_found(name, frame),
+            self._previous_pose(self._found, name, frame),
         )
         if found is None:
             self._found.pop(name, None)
@@ -790,20 +786,35 @@ class PoseEstimator:
             f"colour log-odds {found.colour:.1f}, texture match {found.match:.2f}"
         )
 
-    def _search_due(self, name: str, frame: Frame) -> bool:
-        """Whether to run the depth search for ``name`` in this frame: always without tracking, and when it
-        follows a pose the search found; for an object lost since earlier frames only when its RGB estimate
-        was a full one (every ``track.lost_full_every``-th frame), as an absent object costs seconds a search."""
-        if not self.tracking() or name not in self._lost or self._previous_found(name, frame) is not None:
+    def _silhouettes_of(self, name: str) -> Silhouettes:
+        """The object's colour histogram and view silhouettes (:class:`batchpose.search.Silhouettes`), made once."""
+        if name not in self._silhouettes:
+            lib = self.libraries[name]
+            self._silhouettes[name] = Silhouettes.of(
+                lambda T: self._render(name, T, Camera(lib.K, lib.width, lib.height)),
+                lib,
+                self.models[name].diameter_m,
+                self.conf.depth.search_view_step,
+            )
+        return self._silhouettes[name]
+
+    def _search_due(self, name: str, frame: Frame, store: dict | None = None) -> bool:
+        """Whether to search for ``name`` in this frame (the depth search; the plane search with ``store``
+        its placements): always without tracking, and when it follows a pose the search found; for an object
+        lost since earlier frames only when its RGB estimate was a full one (every
+        ``track.lost_full_every``-th frame), as an absent object costs seconds a search."""
+        store = self._found if store is None else store
+        if not self.tracking() or name not in self._lost or self._previous_pose(store, name, frame) is not None:
             return True
         return (self._lost[name] - 1) % self.conf.track.lost_full_every == 0
 
-    def _previous_found(self, name: str, frame: Frame) -> np.ndarray | None:
-        """The depth search's pose of ``name`` in the previous frame, when tracking is on and ``frame`` is the
-        next one of its sequence (same scene and camera, ``im_id`` + 1, within ``track.max_gap_s``)."""
-        if name not in self._found or not self.tracking():
+    def _previous_pose(self, store: dict, name: str, frame: Frame) -> np.ndarray | None:
+        """A search's pose of ``name`` in the previous frame (``store``: name -> (key, pose)), when tracking is
+        on and ``frame`` is the next one of its sequence (same scene and camera, ``im_id`` + 1, within
+        ``track.max_gap_s``)."""
+        if name not in store or not self.tracking():
             return None
-        (scene_id, im_id, stamp_ns, K), pose = self._found[name]
+        (scene_id, im_id, stamp_ns, K), pose = store[name]
         gap_s = (frame.stamp_ns - stamp_ns) * 1e-9
         follows = (
             scene_id == frame.scene_id
@@ -812,6 +823,87 @@ class PoseEstimator:
             and 0 < gap_s <= self.conf.track.max_gap_s
         )
         return pose if follows else None
+
+    def _use_plane(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
+        """``plane.enabled``: look for each object without a pose on the surface the confidently found ones rest
+        on (:mod:`batchpose.plane`)."""
+        pc = self.conf.plane
+        if self.renderer is None:
+            return
+        lost = [
+            r
+            for r in records
+            if (r.status in NOT_FOUND or (r.ok and not r.tracked and r.confidence < pc.min_confidence))
+            and r.obj_name in self.models
+            and self._search_due(r.obj_name, frame, self._placed)
+        ]
+        if not lost:
+            return
+        t0 = time.perf_counter()
+        found = {
+            r.obj_name: (r.cam_from_model, self.models[r.obj_name].mesh.convex_hull)
+            for r in records
+            if r.ok and r.confidence >= pc.min_confidence and r.obj_name in self.models
+        }
+        plane = support_plane(found, pc)
+        if plane is None:
+            for rec in lost:
+                self._placed.pop(rec.obj_name, None)
+            return
+        cam = frame.camera
+        covered = np.zeros((cam.height, cam.width), bool)
+        nearest = np.full((cam.height, cam.width), np.inf, np.float32)
+        searched = {id(r) for r in lost}
+        for r in records:  # every pose reported explains its pixels
+            if not r.ok or id(r) in searched or r.obj_name not in self.models:
+                continue
+            depth = self._render(r.obj_name, r.cam_from_model, cam)[1]
+            covered |= depth > 0
+            nearest = np.where(depth > 0, np.minimum(nearest, depth), nearest)
+        shared = (time.perf_counter() - t0) / len(lost)
+        for rec in lost:
+            t0 = time.perf_counter()
+            name = rec.obj_name
+            placed = search_plane(
+                rgb,
+                cam.K,
+                plane,
+                self._target(name),
+                covered,
+                nearest,
+                lambda T, K, w, h, name=name: self._render(name, T, Camera(K, w, h)),
+                pc,
+                self._previous_pose(self._placed, name, frame),
+                rec.cam_from_model if rec.ok else None,
+            )
+            rec.timings["plane"] = shared + time.perf_counter() - t0
+            if placed is None:
+                self._placed.pop(name, None)
+                continue
+            self._placed[name] = ((frame.scene_id, frame.im_id, frame.stamp_ns, cam.K.copy()), placed.cam_from_model)
+            why = {"ok": "a weak SIFT pose", "low_confidence": "a low-confidence SIFT pose"}
+            why = why.get(rec.status, "no SIFT pose")
+            how = "followed from the previous frame's" if placed.followed else "found by the"
+            rec.status, rec.cam_from_model = "ok", placed.cam_from_model
+            rec.confidence = 0.25 * (1.0 + placed.match)
+            rec.reason = (
+                f"{how} plane search ({why}): resting on the surface under {', '.join(plane.objects)}, "
+                f"{100 * placed.visible:.0f}% of it unhidden, colour log-odds {placed.colour:.1f}, "
+                f"texture match {placed.match:.2f}, contrast {placed.contrast:.1f}"
+            )
+
+    def _target(self, name: str) -> Target:
+        """What the plane search needs of the object (made once)."""
+        if name not in self._targets:
+            mesh = self.models[name].mesh
+            self._targets[name] = Target(
+                np.asarray(mesh.convex_hull.vertices),
+                np.asarray(mesh.bounding_box.centroid),
+                self.models[name].diameter_m,
+                tuple(resting_faces(mesh, self.conf.plane.min_stable)),
+                self._silhouettes_of(name).hist,
+            )
+        return self._targets[name]
 
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
@@ -840,8 +932,12 @@ class PoseEstimator:
             t_decode = time.perf_counter() - t0
         if any(r.status in ("bad_image", "bad_camera", "error") for r in records):
             self.reset_tracks()  # a frame that could not be read breaks every track
-        elif self.conf.depth.enabled and frame.has_depth:
-            self._use_depth(frame, rgb, records)
+        else:
+            searched = self.conf.depth.enabled and frame.has_depth
+            if searched:
+                self._use_depth(frame, rgb, records)
+            if self.conf.plane.enabled and not (searched and self.conf.depth.search):
+                self._use_plane(frame, rgb, records)
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

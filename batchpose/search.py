@@ -242,7 +242,7 @@ def _colour_odds(
     return float(odds[bins[seen]].mean())
 
 
-def _correlation(a: np.ndarray, b: np.ndarray) -> float:
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
     """Normalised cross-correlation of two (N, 3) colour samples (each channel about its mean)."""
     a = a.astype(np.float64) - a.mean(axis=0)
     b = b.astype(np.float64) - b.mean(axis=0)
@@ -329,7 +329,7 @@ def search(
             float(seen.sum()) / max(n - int(hidden.sum()), 1),
             fit.see_through,
             _colour_odds(bins, frame_counts, sil.hist, sil_px, seen),
-            _correlation(lab[seen], cv2.cvtColor(ren_rgb, cv2.COLOR_RGB2LAB)[seen]),
+            correlation(lab[seen], cv2.cvtColor(ren_rgb, cv2.COLOR_RGB2LAB)[seen]),
         )
 
     if previous is not None:

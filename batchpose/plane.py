@@ -1,0 +1,352 @@
+"""Find an object SIFT missed where the objects it did find stand (``plane.enabled``).
+
+Objects in a recording mostly rest on something — a table, a shelf, the floor — and rest on it in one of a
+few ways: a bottle upright or on its side, a box on one of its faces. When SIFT gives no pose for an object
+(its plain side to the camera: the mustard bottle's back in ycbv_dev) but confident ones for two or more
+others in the frame, the surface those rest on fixes what a silhouette alone cannot — the distance: an
+object standing on it at a given pixel is at one distance only. For such an object:
+
+1. **support plane** (:func:`support_plane`): every found object's convex-hull faces propose a plane normal;
+   the one along which all of them reach equally low (within ``max_spread_m``), with the camera above it,
+   is the surface they rest on;
+2. **resting poses**: the object's stable poses on a plane (:meth:`trimesh.Trimesh.compute_stable_poses`,
+   those with probability at least ``min_stable``), each turned about the plane's normal in ``angles``
+   steps;
+3. **search**: for each resting pose and turn, its silhouette is correlated with the frame's colour
+   log-odds map (the object's colours against the frame's outside the found objects; the pixels the found
+   objects cover count 0: they are explained), at each place with the size the plane's distance there
+   gives it; of the best distinct placements (4 x ``starts``), rendered, the ``starts`` whose texture and
+   colour match the frame best go on (a silhouette cannot tell a box's front from its back);
+4. **refine**: each is turned about the normal and slid along the plane while the mesh rendered there
+   matches the frame better, over the silhouette pixels no found object hides: texture correlation in Lab
+   plus ``colour_weight`` x mean colour log-odds (in 15 and 8 degree steps; the best then in 4 and 2);
+5. **verify**: the best is kept if at least ``min_visible`` of its silhouette is not hidden by a found object,
+   those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
+   silhouette by ``min_contrast`` (it stands out from where it stands), and the texture correlation is
+   at least ``min_match``; with a weak SIFT pose, it must also match the frame better than that pose.
+
+With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
+and searches only when that no longer passes. reports/ACCURACY.md ("Session 10") has the figures.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from batchpose.config import PlaneConfig
+from batchpose.search import N_BINS, colour_bins, correlation
+
+#: The coarse search's resolution (every LEVEL-th pixel).
+LEVEL = 4
+#: A silhouette pixel is hidden where a found object's surface is this much nearer than the object's.
+HIDDEN_M = 0.01
+#: Consecutive sizes of the coarse search differ by this factor (the plane gives each place one of them).
+SIZE_STEP = 1.1
+#: The coarse search's best placements judged by rendering (texture and colour) for each one refined.
+CANDIDATES_PER_START = 4
+#: The ring around a silhouette whose colours :attr:`Placed.contrast` compares with the silhouette's (4 px wide).
+RING_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))
+#: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
+#: is refined with the coarse ones, the best of them then with the fine ones.
+COARSE_STEPS = ((15.0, 0.05), (8.0, 0.025))
+FINE_STEPS = ((4.0, 0.0125), (2.0, 0.006))
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A support plane in camera coordinates: ``normal . x == offset`` on it, ``normal`` pointing to the side
+    the objects (and the camera) are on."""
+
+    normal: np.ndarray
+    offset: float
+    spread_m: float  # how far apart the found objects' lowest points are along the normal
+    objects: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Placed:
+    """A pose the plane search kept."""
+
+    cam_from_model: np.ndarray
+    visible: float  # fraction of the silhouette no found object hides
+    colour: float  # mean colour log-odds of those pixels
+    match: float  # texture correlation (Lab) of the rendered mesh with the frame over those pixels
+    contrast: float  # ``colour`` less that of the ring of pixels just outside the silhouette
+    followed: bool = False
+
+
+def support_plane(found: dict[str, tuple[np.ndarray, np.ndarray]], conf: PlaneConfig) -> Plane | None:
+    """The plane the found objects rest on, or None when they do not rest on one.
+
+    Args:
+        found: name -> (cam_from_model, hull) for each confidently found object, ``hull`` a
+            trimesh convex hull of its mesh (model frame).
+    """
+    if len(found) < conf.min_objects:
+        return None
+    points = {n: hull.vertices @ T[:3, :3].T + T[:3, 3] for n, (T, hull) in found.items()}
+    normals = []
+    for T, hull in found.values():
+        biggest = np.argsort(-hull.area_faces)[: conf.plane_candidates]
+        normals.append(-(hull.face_normals[biggest] @ T[:3, :3].T))  # a resting face points down
+    normals = np.concatenate(normals)
+    lows = np.stack([(p @ normals.T).min(axis=0) for p in points.values()])  # (objects, candidates)
+    offset = lows.mean(axis=0)
+    spread = lows.max(axis=0) - lows.min(axis=0)
+    spread[offset >= 0] = np.inf  # the camera (the origin) must be above the plane
+    best = int(np.argmin(spread))
+    if not spread[best] <= conf.max_spread_m:
+        return None
+    return Plane(normals[best], float(offset[best]), float(spread[best]), tuple(found))
+
+
+def resting_faces(mesh, min_stable: float) -> list[np.ndarray]:
+    """Model-frame outward normals of the faces the mesh rests on with probability at least ``min_stable``
+    (stable poses within 15 degrees of one another counted as one)."""
+    transforms, probs = mesh.compute_stable_poses(n_samples=1)
+    faces: list[list] = []
+    for T, p in zip(transforms, probs, strict=True):
+        down = np.linalg.inv(T)[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        for f in faces:
+            if f[1] @ down > np.cos(np.deg2rad(15.0)):
+                f[0] += p
+                break
+        else:
+            faces.append([float(p), down])
+    return [f[1] for f in sorted(faces, key=lambda f: -f[0]) if f[0] >= min_stable]
+
+
+def _turn_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The shortest rotation taking unit vector ``a`` to unit vector ``b``."""
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-9:
+        if c > 0:
+            return np.eye(3)
+        other = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        axis = np.cross(a, other)
+        return cv2.Rodrigues(axis / np.linalg.norm(axis) * np.pi)[0]
+    return cv2.Rodrigues(axis / s * np.arctan2(s, c))[0]
+
+
+@dataclass(frozen=True)
+class Target:
+    """What the search needs of the object looked for."""
+
+    hull: np.ndarray  # (N, 3) convex-hull vertices, model frame
+    centre: np.ndarray  # model frame
+    diameter_m: float
+    faces: tuple[np.ndarray, ...]  # resting faces' outward normals (model frame)
+    hist: np.ndarray  # colour histogram (see batchpose.search.colour_bins)
+
+
+class _Judge:
+    """Scores poses against one frame: renders the mesh in a ``size``-pixel square around the object's centre
+    (far cheaper than the whole frame) and compares it with the frame where no found object hides it."""
+
+    def __init__(self, rgb, odds, found_mask, occluder_depth, render, K, target: Target, size: int, conf):
+        self.lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+        self.odds, self.found_mask, self.occluder_depth = odds, found_mask, occluder_depth
+        self.render, self.K, self.target, self.size, self.conf = render, K, target, size, conf
+
+    def __call__(self, T: np.ndarray) -> tuple[float, Placed | None]:
+        c = self.K @ (T[:3, :3] @ self.target.centre + T[:3, 3])
+        if c[2] <= 0:
+            return -np.inf, None
+        x0, y0 = int(round(c[0] / c[2])) - self.size // 2, int(round(c[1] / c[2])) - self.size // 2
+        K = self.K.copy()
+        K[:2, 2] -= (x0, y0)
+        ren_rgb, ren_depth = self.render(T, K, self.size, self.size)
+        h, w = self.odds.shape
+        xa, ya, xb, yb = max(x0, 0), max(y0, 0), min(x0 + self.size, w), min(y0 + self.size, h)
+        if xb <= xa or yb <= ya:
+            return -np.inf, None
+        crop, win = np.s_[ya - y0 : yb - y0, xa - x0 : xb - x0], np.s_[ya:yb, xa:xb]
+        n = int((ren_depth > 0).sum())  # parts outside the frame count as not seen
+        sil, depth = ren_depth[crop] > 0, ren_depth[crop]
+        seen = sil & ~(self.occluder_depth[win] < depth - HIDDEN_M)
+        k = int(seen.sum())
+        if k < 30 or k < self.conf.min_visible * n:
+            return -np.inf, None
+        rendered = cv2.cvtColor(ren_rgb[crop][seen][None], cv2.COLOR_RGB2LAB)[0]
+        odds = self.odds[win]
+        colour = float(odds[seen].mean())
+        ring = cv2.dilate(sil.astype(np.uint8), RING_KERNEL).astype(bool) & ~sil & ~self.found_mask[win]
+        contrast = colour - float(odds[ring].mean()) if ring.any() else colour
+        placed = Placed(T, k / n, colour, correlation(self.lab[win][seen], rendered), contrast)
+        return placed.match + self.conf.colour_weight * placed.colour, placed
+
+
+def search_plane(
+    rgb: np.ndarray,
+    K: np.ndarray,
+    plane: Plane,
+    target: Target,
+    found_mask: np.ndarray,
+    occluder_depth: np.ndarray,
+    render,
+    conf: PlaneConfig,
+    previous: np.ndarray | None = None,
+    incumbent: np.ndarray | None = None,
+) -> Placed | None:
+    """Look for the object on ``plane`` (see the module docstring); None when nothing passes the checks.
+
+    Args:
+        rgb: the frame. K: its intrinsics.
+        found_mask: the pixels the found objects cover. occluder_depth: their rendered depth (inf elsewhere).
+        render: callable(cam_from_model, K, width, height) -> (rgb, depth).
+        previous: the placement kept in the previous frame of a sequence: refined first, and kept without a
+            search when it passes.
+        incumbent: a weak pose the estimate has: a placement must also match the frame better than it does.
+    """
+    bins = colour_bins(rgb)
+    background = np.bincount(bins[~found_mask], minlength=N_BINS) / max(int((~found_mask).sum()), 1)
+    odds = np.log((target.hist + 1e-3) / (background + 1e-3)).clip(-3, 3).astype(np.float32)[bins]
+    odds[found_mask] = 0.0  # explained by the objects found there
+
+    def judge_around(poses: list[np.ndarray]) -> tuple[_Judge, float]:
+        """A judge rendering a square that holds the object at any of ``poses``, and the incumbent's score."""
+        span = max(_span_px(T, K, target) for T in [*poses, *([] if incumbent is None else [incumbent])])
+        size = min(int(np.ceil((1.2 * span + 8) / 32)) * 32, 2 * max(rgb.shape[:2]))
+        judge = _Judge(rgb, odds, found_mask, occluder_depth, render, K, target, size, conf)
+        return judge, -np.inf if incumbent is None else judge(incumbent)[0]
+
+    def passes(score: float, p: Placed | None, floor: float) -> bool:
+        return (
+            p is not None
+            and score > floor
+            and p.visible >= conf.min_visible
+            and p.colour >= conf.min_colour
+            and p.match >= conf.min_match
+            and p.contrast >= conf.min_contrast
+        )
+
+    if previous is not None:
+        judge, floor = judge_around([previous])
+        score, placed = _refine(previous, plane, target, judge, FINE_STEPS)
+        if passes(score, placed, floor):
+            return dataclasses.replace(placed, followed=True)
+    places = _places(odds, K, plane, target, conf.starts * CANDIDATES_PER_START, conf)
+    if not places:
+        return None
+    judge, floor = judge_around(places)
+    # The coarse search cannot tell a box on its front from one on its back (or a bottle turned half round):
+    # the texture decides which of its placements are refined.
+    scored = sorted(((judge(T)[0], k) for k, T in enumerate(places)), reverse=True)
+    best: tuple[float, Placed | None] = (-np.inf, None)
+    for _, k in scored[: conf.starts]:
+        refined = _refine(places[k], plane, target, judge, COARSE_STEPS)
+        if refined[1] is not None and refined[0] > best[0]:
+            best = refined
+    if best[1] is not None:
+        best = _refine(best[1].cam_from_model, plane, target, judge, FINE_STEPS)
+    return best[1] if passes(*best, floor) else None
+
+
+def _span_px(T: np.ndarray, K: np.ndarray, target: Target) -> float:
+    """How many pixels the object's diameter spans at pose T."""
+    z = float((T[:3, :3] @ target.centre + T[:3, 3])[2])
+    return 0.5 * (K[0, 0] + K[1, 1]) * target.diameter_m / max(z, 1e-3)
+
+
+def _places(
+    odds: np.ndarray, K: np.ndarray, plane: Plane, target: Target, count: int, conf: PlaneConfig
+) -> list[np.ndarray]:
+    """The coarse search: the ``count`` best distinct resting placements, best first."""
+    h, w = odds.shape[0] // LEVEL, odds.shape[1] // LEVEL
+    small = cv2.resize(odds, (w, h), interpolation=cv2.INTER_AREA)
+    Ks = K.copy()
+    Ks[:2] /= LEVEL
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    rays = np.stack([(u - Ks[0, 2]) / Ks[0, 0], (v - Ks[1, 2]) / Ks[1, 1], np.ones_like(u)], axis=-1)
+    along = rays @ plane.normal
+    n = plane.normal
+    f_px = 0.5 * (Ks[0, 0] + Ks[1, 1])
+    found = []
+    for face in target.faces:
+        R_face = _turn_to(face, -n)
+        for angle in np.deg2rad(np.arange(0.0, 360.0, 360.0 / conf.angles)):
+            R = cv2.Rodrigues(n * angle)[0] @ R_face
+            height = float(n @ (R @ target.centre) - (target.hull @ R.T @ n).min())
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = (plane.offset + height) / along  # the centre's distance (rays have z = 1)
+            span = f_px * target.diameter_m / np.where(z > 0, z, np.nan)
+            ok = (z > 0) & (span >= conf.min_span_px / LEVEL) & (span <= 0.9 * h)
+            if not ok.any():
+                continue
+            best = np.full((h, w), -np.inf, np.float32)
+            z_k = float(np.nanmin(np.where(ok, z, np.nan)))
+            while z_k <= np.nanmax(np.where(ok, z, np.nan)) * SIZE_STEP:
+                mask, c = _silhouette(R, target, Ks, z_k)
+                band = ok & (np.abs(np.log(z / z_k)) <= 0.5 * np.log(SIZE_STEP))
+                if band.any() and mask.shape[0] < h and mask.shape[1] < w:
+                    S = cv2.matchTemplate(small, mask, cv2.TM_CCORR)
+                    full = np.full((h, w), -np.inf, np.float32)
+                    full[c[1] : c[1] + S.shape[0], c[0] : c[0] + S.shape[1]] = S
+                    best = np.where(band, np.maximum(best, full), best)
+                z_k *= SIZE_STEP
+            y, x = np.unravel_index(int(np.argmax(best)), best.shape)
+            if np.isfinite(best[y, x]):
+                T = np.eye(4)
+                T[:3, :3] = R
+                T[:3, 3] = z[y, x] * rays[y, x] - R @ target.centre
+                found.append((float(best[y, x]), T))
+    found.sort(key=lambda f: -f[0])
+    kept: list[np.ndarray] = []
+    for _, T in found:
+        if not any(_near(T, k, target) for k in kept):
+            kept.append(T)
+        if len(kept) == count:
+            break
+    return kept
+
+
+def _near(A: np.ndarray, B: np.ndarray, target: Target) -> bool:
+    """Same place (centres within 0.2 diameter) and nearly the same turn (within 20 degrees)."""
+    ca, cb = A[:3, :3] @ target.centre + A[:3, 3], B[:3, :3] @ target.centre + B[:3, 3]
+    turn = np.rad2deg(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1)))
+    return np.linalg.norm(ca - cb) < 0.2 * target.diameter_m and turn < 20.0
+
+
+def _silhouette(R: np.ndarray, target: Target, Ks: np.ndarray, z: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """The object turned by R with its centre ``z`` away on the optical axis, as a filled hull polygon; and the
+    centre's pixel in it."""
+    p = target.hull @ R.T + (np.array([0.0, 0.0, z]) - R @ target.centre)
+    xy = p[:, :2] / p[:, 2:] * [Ks[0, 0], Ks[1, 1]]
+    r = int(np.ceil(np.abs(xy).max())) + 1
+    mask = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+    poly = cv2.convexHull(np.round(xy + r).astype(np.int32))
+    cv2.fillConvexPoly(mask, poly, 1.0)
+    return mask, (r, r)
+
+
+def _refine(start: np.ndarray, plane: Plane, target: Target, judge: _Judge, steps) -> tuple[float, Placed | None]:
+    """Steepest ascent from ``start`` over turns about the plane's normal (through the object's centre) and
+    slides along the plane, with each of ``steps`` ((degrees, fraction of the diameter), largest first) until
+    no move improves."""
+    n = plane.normal
+    e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(n, e1)
+    best, (score, placed) = start, judge(start)
+    for step_deg, step in steps:
+        while True:
+            moves = []
+            for sign in (1.0, -1.0):
+                T = best.copy()
+                T[:3, :3] = cv2.Rodrigues(n * np.deg2rad(sign * step_deg))[0] @ best[:3, :3]
+                T[:3, 3] += best[:3, :3] @ target.centre - T[:3, :3] @ target.centre
+                moves.append(T)
+                for e in (e1, e2):
+                    T = best.copy()
+                    T[:3, 3] += sign * step * target.diameter_m * e
+                    moves.append(T)
+            s, p, T = max(((*judge(T), T) for T in moves), key=lambda m: m[0])
+            if not s > score + 1e-4:
+                break
+            best, score, placed = T, s, p
+    return score, placed

@@ -1,0 +1,158 @@
+"""The plane search (``plane.enabled``): the support plane, resting faces, and finding an object SIFT missed
+where the found objects stand."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+
+from batchpose.config import ConfigError, PlaneConfig, load_estimator_config
+from batchpose.estimate import PoseEstimator
+from batchpose.frames import Camera, Frame
+from batchpose.mesh import load_mesh
+from batchpose.plane import resting_faces, support_plane
+from batchpose.poses import PoseRecord
+from batchpose.render import get_renderer
+from batchpose.views import look_at
+from tests.conftest import GELATIN, K_SYN
+
+#: A camera 0.55 m above a table (world z = 0), 0.45 m back, looking at the table's origin.
+CAM_FROM_WORLD = look_at(np.array([0.0, -0.45, 0.55]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+
+
+def _on_table(mesh, x: float, y: float, turn_deg: float, rest: int = 0) -> np.ndarray:
+    """cam_from_model of the mesh resting on the table (its ``rest``-th stable pose) at (x, y), turned."""
+    transforms, _ = mesh.compute_stable_poses(n_samples=1)
+    a = np.deg2rad(turn_deg)
+    world = np.eye(4)
+    world[:3, :3] = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
+    world[:3, 3] = [x, y, 0.0]
+    return CAM_FROM_WORLD @ world @ transforms[rest]
+
+
+def _hull(model):
+    return model.mesh.convex_hull
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+def test_support_plane_of_objects_resting_on_a_table(cracker_model):
+    gelatin = load_mesh(GELATIN)
+    A = _on_table(cracker_model.mesh, -0.12, 0.05, 30)
+    B = _on_table(gelatin.mesh, 0.1, -0.02, -50)
+    plane = support_plane({"a": (A, _hull(cracker_model)), "b": (B, _hull(gelatin))}, PlaneConfig())
+    table_normal = CAM_FROM_WORLD[:3, 2]  # world +z in the camera
+    assert plane is not None and _angle_deg(plane.normal, table_normal) < 0.5
+    assert plane.offset == pytest.approx(table_normal @ CAM_FROM_WORLD[:3, 3], abs=1e-3) and plane.spread_m < 1e-3
+    lifted = B.copy()
+    lifted[:3, 3] += 0.1 * table_normal  # held 10 cm above the table: no common plane
+    assert support_plane({"a": (A, _hull(cracker_model)), "b": (lifted, _hull(gelatin))}, PlaneConfig()) is None
+    assert support_plane({"a": (A, _hull(cracker_model))}, PlaneConfig()) is None  # one object
+
+
+def test_resting_faces_of_a_box():
+    faces = resting_faces(trimesh.creation.box(extents=(0.1, 0.2, 0.3)), 0.02)
+    assert len(faces) == 6 and all(np.isclose(np.abs(f).max(), 1.0) for f in faces)
+    # The likeliest first: the box lies on one of its two largest faces (normal along x).
+    assert np.isclose(abs(faces[0][0]), 1.0)
+
+
+def test_plane_config_is_checked():
+    with pytest.raises(ConfigError, match=r"plane.min_objects must be >= 2, got 1"):
+        load_estimator_config({"plane": {"min_objects": 1}})
+    with pytest.raises(ConfigError, match=r"unknown key.*plane"):
+        load_estimator_config({"plane": {"enabled": True, "min_object": 2}})
+
+
+def _scene(cracker_model, with_cracker: bool, seed: int = 3):
+    """Two gelatin boxes on a grey table, and (if ``with_cracker``) the cracker box lying between them."""
+    r = get_renderer()
+    gelatin = load_mesh(GELATIN)
+    poses = {
+        "gelatin_a": _on_table(gelatin.mesh, -0.16, 0.08, 20),
+        "gelatin_b": _on_table(gelatin.mesh, 0.15, 0.1, -35),
+    }
+    T = _on_table(cracker_model.mesh, 0.0, -0.02, 70)
+    meshes = {"gelatin_a": gelatin, "gelatin_b": gelatin}
+    if with_cracker:
+        meshes[cracker_model.name], poses[cracker_model.name] = cracker_model, T
+    rng = np.random.default_rng(seed)
+    img = np.full((480, 640, 3), 150, np.uint8)
+    img[:] = (np.clip(rng.normal(150, 4, img.shape), 0, 255)).astype(np.uint8)
+    zbuf = np.full((480, 640), np.inf)
+    for name, P in poses.items():
+        m = meshes[name]
+        rgb, depth = r.render(m.content_hash, m.mesh, P, K_SYN, 640, 480, "lit")
+        on = (depth > 0) & (depth < zbuf)
+        img[on], zbuf[on] = rgb[on], depth[on]
+    frame = Frame("table", 0, 0, 0, Camera(K_SYN, 640, 480), "png", cv2.imencode(".png", img[:, :, ::-1])[1].tobytes())
+    models = {"gelatin_a": gelatin, "gelatin_b": gelatin, cracker_model.name: cracker_model}
+    found = [PoseRecord("table", n, "ok", cam_from_model=poses[n], confidence=0.9) for n in ("gelatin_a", "gelatin_b")]
+    return frame, img, models, found, T
+
+
+def _plane_search(cracker_model, cracker_library, with_cracker: bool, frames: int = 1, **conf):
+    frame, img, models, found, T = _scene(cracker_model, with_cracker)
+    conf = load_estimator_config({"track": {"enabled": False}} | conf)
+    est = PoseEstimator(conf, {cracker_model.name: cracker_library}, models=models, renderer=get_renderer())
+    recs = []
+    for im_id in range(frames):  # a 30 Hz sequence of the same image
+        frame = dataclasses.replace(frame, im_id=im_id, stamp_ns=im_id * 33_000_000)
+        recs.append(PoseRecord("table", cracker_model.name, "too_few_matches"))
+        est._use_plane(frame, img, [*found, recs[-1]])
+    return (recs[0] if frames == 1 else recs), T
+
+
+def test_plane_search_finds_an_object_lying_among_found_ones(cracker_model, cracker_library):
+    from tests.test_depth import _adds_mm
+
+    rec, T = _plane_search(cracker_model, cracker_library, with_cracker=True)
+    assert rec.ok and rec.reason.startswith(
+        "found by the plane search (no SIFT pose): resting on the surface under gelatin_a, gelatin_b"
+    )
+    assert 0.3 < rec.confidence <= 0.5 and rec.timings["plane"] > 0
+    assert _adds_mm(cracker_model, rec.cam_from_model, T) < 10
+
+
+def test_plane_search_keeps_nothing_where_the_object_is_not(cracker_model, cracker_library):
+    rec, _ = _plane_search(cracker_model, cracker_library, with_cracker=False)
+    assert rec.status == "too_few_matches" and rec.cam_from_model is None
+
+
+def test_plane_search_follows_its_placement_into_the_next_frame(cracker_model, cracker_library):
+    from tests.test_depth import _adds_mm
+
+    recs, T = _plane_search(cracker_model, cracker_library, True, frames=2, track={"enabled": True})
+    assert [r.reason.split(" (")[0] for r in recs] == [
+        "found by the plane search",
+        "followed from the previous frame's plane search",
+    ]
+    assert _adds_mm(cracker_model, recs[1].cam_from_model, T) < 10
+    assert recs[1].timings["plane"] < recs[0].timings["plane"]
+
+
+@pytest.mark.parametrize("off_m, replaced", [(0.2, True), (0.0, False)])
+def test_a_weak_sift_pose_is_replaced_only_by_a_placement_that_fits_better(
+    cracker_model, cracker_library, off_m, replaced
+):
+    """A SIFT pose under plane.min_confidence is searched past: a wrong one (20 cm off) gives way to the
+    placement, the right one (which the frame matches better than any placement) stays."""
+    frame, img, models, found, T = _scene(cracker_model, True)
+    weak = T.copy()
+    weak[:3, 3] += [off_m, 0.0, 0.0]
+    est = PoseEstimator(
+        load_estimator_config({"track": {"enabled": False}}),
+        {cracker_model.name: cracker_library},
+        models=models,
+        renderer=get_renderer(),
+    )
+    rec = PoseRecord("table", cracker_model.name, "ok", cam_from_model=weak, confidence=0.35)
+    est._use_plane(frame, img, [*found, rec])
+    assert rec.ok and rec.reason.startswith("found by the plane search (a weak SIFT pose)") == replaced
+    assert (rec.cam_from_model is weak) != replaced and rec.timings["plane"] > 0
