@@ -934,10 +934,16 @@ class PoseEstimator:
             self.reset_tracks()  # a frame that could not be read breaks every track
         else:
             searched = self.conf.depth.enabled and frame.has_depth
-            if searched:
-                self._use_depth(frame, rgb, records)
+            stages = [self._use_depth] if searched else []
             if self.conf.plane.enabled and not (searched and self.conf.depth.search):
-                self._use_plane(frame, rgb, records)
+                stages.append(self._use_plane)
+            for stage in stages:
+                try:
+                    stage(frame, rgb, records)
+                except Exception as e:  # a bug in an optional stage must not cost the frame its RGB poses
+                    log.warning("%s: %s failed (%s: %s); poses as estimated before it", frame.frame_id,
+                                stage.__name__.lstrip("_"), type(e).__name__, e)  # fmt: skip
+                    log.debug("%s failed", stage.__name__, exc_info=True)
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

@@ -156,3 +156,25 @@ def test_a_weak_sift_pose_is_replaced_only_by_a_placement_that_fits_better(
     est._use_plane(frame, img, [*found, rec])
     assert rec.ok and rec.reason.startswith("found by the plane search (a weak SIFT pose)") == replaced
     assert (rec.cam_from_model is weak) != replaced and rec.timings["plane"] > 0
+
+
+def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracker_library, monkeypatch, caplog):
+    """An unexpected error in the optional stage is a warning; the records stay as the estimate made them."""
+    import batchpose.estimate
+
+    def boom(*a, **k):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(batchpose.estimate, "support_plane", boom)
+    frame, *_ = _scene(cracker_model, True)
+    recs = []
+    for enabled in (True, False):
+        conf = load_estimator_config(
+            {"features": {"n_features": 4}, "track": {"enabled": False}, "plane": {"enabled": enabled}}
+        )
+        est = PoseEstimator(conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model},
+                            renderer=get_renderer())  # fmt: skip
+        recs += est.estimate_frame(frame, [cracker_model.name])
+    assert "table: use_plane failed (RuntimeError: boom); poses as estimated before it" in caplog.text
+    assert recs[0].status == recs[1].status and recs[0].reason == recs[1].reason
+    np.testing.assert_array_equal(recs[0].cam_from_model, recs[1].cam_from_model)
