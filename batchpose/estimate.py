@@ -32,7 +32,7 @@ from batchpose.gnc_pnp import solve_pose
 from batchpose.plane import Target, resting_faces, search_plane, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
-from batchpose.search import Silhouettes, search
+from batchpose.search import Silhouettes, correlation, search
 from batchpose.templates import TemplateLibrary
 from batchpose.track import Track, anchor_to_render, follow_all, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
@@ -824,6 +824,45 @@ class PoseEstimator:
         )
         return pose if follows else None
 
+    def _verify_weak(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
+        """``verify_below``: a weak full estimate whose rendered mesh does not look like the frame where it puts
+        the object (texture match below ``verify_min_match`` over the pixels no other reported pose hides)
+        becomes low_confidence."""
+        conf = self.conf
+        if self.renderer is None:
+            return
+        weak = [
+            r for r in records
+            if r.ok and not r.tracked and r.confidence < conf.verify_below and r.obj_name in self.models
+        ]  # fmt: skip
+        if not weak:
+            return
+        cam = frame.camera
+        t0 = time.perf_counter()
+        shown = {
+            r.obj_name: self._render(r.obj_name, r.cam_from_model, cam)
+            for r in records
+            if r.ok and r.obj_name in self.models
+        }
+        lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+        shared = (time.perf_counter() - t0) / len(weak)
+        for rec in weak:
+            t0 = time.perf_counter()
+            ren_rgb, depth = shown[rec.obj_name]
+            seen = depth > 0
+            for name, (_, other) in shown.items():
+                if name != rec.obj_name:
+                    seen &= ~((other > 0) & (other < depth - 0.01))
+            if seen.sum() >= 30:
+                match = correlation(lab[seen], cv2.cvtColor(ren_rgb[seen][None], cv2.COLOR_RGB2LAB)[0])
+                if match < conf.verify_min_match:
+                    rec.status = "low_confidence"
+                    rec.reason = (
+                        f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g}) whose mesh "
+                        f"does not look like the frame there (texture match {match:.2f} < {conf.verify_min_match:g})"
+                    )
+            rec.timings["refine"] = rec.timings.get("refine", 0.0) + shared + time.perf_counter() - t0
+
     def _use_plane(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``plane.enabled``: look for each object without a pose on the surface the confidently found ones rest
         on (:mod:`batchpose.plane`)."""
@@ -934,7 +973,9 @@ class PoseEstimator:
             self.reset_tracks()  # a frame that could not be read breaks every track
         else:
             searched = self.conf.depth.enabled and frame.has_depth
-            stages = [self._use_depth] if searched else []
+            stages = [self._verify_weak] if self.conf.verify_below > 0 else []
+            if searched:
+                stages.append(self._use_depth)
             if self.conf.plane.enabled and not (searched and self.conf.depth.search):
                 stages.append(self._use_plane)
             for stage in stages:

@@ -66,6 +66,8 @@ def test_resting_faces_of_a_box():
 def test_plane_config_is_checked():
     with pytest.raises(ConfigError, match=r"plane.min_objects must be >= 2, got 1"):
         load_estimator_config({"plane": {"min_objects": 1}})
+    with pytest.raises(ConfigError, match=r"verify_below must be in \[0, 1\], got 1.5"):
+        load_estimator_config({"verify_below": 1.5})
     with pytest.raises(ConfigError, match=r"unknown key.*plane"):
         load_estimator_config({"plane": {"enabled": True, "min_object": 2}})
 
@@ -178,3 +180,21 @@ def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracke
     assert "table: use_plane failed (RuntimeError: boom); poses as estimated before it" in caplog.text
     assert recs[0].status == recs[1].status and recs[0].reason == recs[1].reason
     np.testing.assert_array_equal(recs[0].cam_from_model, recs[1].cam_from_model)
+
+
+@pytest.mark.parametrize("off_m, kept", [(0.0, True), (0.25, False)])
+def test_a_weak_pose_must_look_like_the_frame(cracker_model, cracker_library, off_m, kept):
+    """verify_below: a weak pose (confidence < 0.5) whose rendered mesh does not correlate with the frame (here
+    25 cm off, on the table) becomes low_confidence; the right one stays."""
+    frame, img, models, found, T = _scene(cracker_model, True)
+    pose = T.copy()
+    pose[:3, 3] += [off_m, 0.0, 0.0]
+    est = PoseEstimator(load_estimator_config({}), {cracker_model.name: cracker_library}, models=models,
+                        renderer=get_renderer())  # fmt: skip
+    rec = PoseRecord("table", cracker_model.name, "ok", cam_from_model=pose, confidence=0.35)
+    est._verify_weak(frame, img, [*found, rec])
+    assert rec.ok == kept
+    if not kept:
+        assert rec.status == "low_confidence" and rec.reason.startswith(
+            "weak pose (confidence 0.35 < verify_below 0.5) whose mesh does not look like the frame there"
+        )
