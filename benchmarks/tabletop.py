@@ -6,8 +6,9 @@ ycbv_dev's video 0001 (master chef can, cracker box, sugar box and mustard bottl
 table from their ground-truth poses, and stands each other YCB object on it: on one of its resting faces
 (:func:`batchpose.plane.resting_faces`, chosen uniformly), turned at random about the table's normal, at a
 random free place on the table in view (0.5-1.6 m away, where the depth image sees the table, clear
-of the real objects' footprints, at least half of it visible). The real objects in front hide it where the frame's depth image is nearer; then the frame gets
-heldout.py's colour gain, blur, noise and JPEG. The frames are a BOP data set with every object's ground
+of the real objects' footprints, at least half of it visible). The real objects in front hide it where
+the frame's depth image is nearer; then the frame gets heldout.py's colour gain, blur, noise and JPEG.
+The frames are a BOP data set with every object's ground
 truth (im_ids two apart: no tracking) and run through ``batchpose run``; the table gives, for the inserted
 objects, ADD-S / ADD AUC, how many poses are wrong but reported ok and how many the plane search found.
 
