@@ -32,7 +32,7 @@ from batchpose.gnc_pnp import solve_pose
 from batchpose.plane import Target, resting_faces, search_plane, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
-from batchpose.search import Silhouettes, correlation, search
+from batchpose.search import Silhouettes, search, texture_match
 from batchpose.templates import TemplateLibrary
 from batchpose.track import Track, anchor_to_render, follow_all, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
@@ -854,7 +854,7 @@ class PoseEstimator:
                 if name != rec.obj_name:
                     seen &= ~((other > 0) & (other < depth - 0.01))
             if seen.sum() >= 30:
-                match = correlation(lab[seen], cv2.cvtColor(ren_rgb[seen][None], cv2.COLOR_RGB2LAB)[0])
+                match = texture_match(lab[seen], ren_rgb[seen])
                 if match < conf.verify_min_match:
                     rec.status = "low_confidence"
                     rec.reason = (

@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import PlaneConfig
-from batchpose.search import N_BINS, colour_bins, correlation
+from batchpose.search import N_BINS, colour_bins, texture_match
 
 #: The coarse search's resolution (every LEVEL-th pixel).
 LEVEL = 4
@@ -120,6 +120,13 @@ def resting_faces(mesh, min_stable: float) -> list[np.ndarray]:
     return [f[1] for f in sorted(faces, key=lambda f: -f[0]) if f[0] >= min_stable]
 
 
+def resting(face: np.ndarray, normal: np.ndarray, angle: float, target_hull: np.ndarray, centre: np.ndarray):
+    """The rotation that lays the model's resting ``face`` (outward normal, model frame) on a plane with
+    ``normal``, turned by ``angle`` about it; and the height of the model point ``centre`` above the plane."""
+    R = cv2.Rodrigues(normal * angle)[0] @ _turn_to(face, -normal)
+    return R, float(normal @ (R @ centre) - (target_hull @ R.T @ normal).min())
+
+
 def _turn_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The shortest rotation taking unit vector ``a`` to unit vector ``b``."""
     axis = np.cross(a, b)
@@ -172,12 +179,11 @@ class _Judge:
         k = int(seen.sum())
         if k < 30 or k < self.conf.min_visible * n:
             return -np.inf, None
-        rendered = cv2.cvtColor(ren_rgb[crop][seen][None], cv2.COLOR_RGB2LAB)[0]
         odds = self.odds[win]
         colour = float(odds[seen].mean())
         ring = cv2.dilate(sil.astype(np.uint8), RING_KERNEL).astype(bool) & ~sil & ~self.found_mask[win]
         contrast = colour - float(odds[ring].mean()) if ring.any() else colour
-        placed = Placed(T, k / n, colour, correlation(self.lab[win][seen], rendered), contrast)
+        placed = Placed(T, k / n, colour, texture_match(self.lab[win][seen], ren_rgb[crop][seen]), contrast)
         return placed.match + self.conf.colour_weight * placed.colour, placed
 
 
@@ -268,10 +274,8 @@ def _places(
     f_px = 0.5 * (Ks[0, 0] + Ks[1, 1])
     found = []
     for face in target.faces:
-        R_face = _turn_to(face, -n)
         for angle in np.deg2rad(np.arange(0.0, 360.0, 360.0 / conf.angles)):
-            R = cv2.Rodrigues(n * angle)[0] @ R_face
-            height = float(n @ (R @ target.centre) - (target.hull @ R.T @ n).min())
+            R, height = resting(face, n, angle, target.hull, target.centre)
             with np.errstate(divide="ignore", invalid="ignore"):
                 z = (plane.offset + height) / along  # the centre's distance (rays have z = 1)
             span = f_px * target.diameter_m / np.where(z > 0, z, np.nan)

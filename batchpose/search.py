@@ -242,11 +242,17 @@ def _colour_odds(
     return float(odds[bins[seen]].mean())
 
 
-def correlation(a: np.ndarray, b: np.ndarray) -> float:
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     """Normalised cross-correlation of two (N, 3) colour samples (each channel about its mean)."""
     a = a.astype(np.float64) - a.mean(axis=0)
     b = b.astype(np.float64) - b.mean(axis=0)
     return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-9))
+
+
+def texture_match(frame_lab: np.ndarray, rendered_rgb: np.ndarray) -> float:
+    """How well a rendered mesh's colours line up with the frame's: :func:`_correlation` of (N, 3) samples in
+    Lab, the frame's already converted, the render's RGB."""
+    return _correlation(frame_lab, cv2.cvtColor(rendered_rgb[None], cv2.COLOR_RGB2LAB)[0])
 
 
 #: The polish's turn sizes (degrees), largest first.
@@ -329,7 +335,7 @@ def search(
             float(seen.sum()) / max(n - int(hidden.sum()), 1),
             fit.see_through,
             _colour_odds(bins, frame_counts, sil.hist, sil_px, seen),
-            correlation(lab[seen], cv2.cvtColor(ren_rgb, cv2.COLOR_RGB2LAB)[seen]),
+            texture_match(lab[seen], ren_rgb[seen]),
         )
 
     if previous is not None:

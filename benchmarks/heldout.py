@@ -157,18 +157,38 @@ def generate(out: Path, objects: list[str], n: int, seed: int) -> Path:
     return manifest
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0], epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("--frames", type=int, default=8, help="frames per object (default 8)")
-    ap.add_argument("--objects", nargs="+", help="object names (default: every mesh in ../shared/data/ycb_models)")
+def run_options(ap: argparse.ArgumentParser) -> None:
+    """The options of the ``batchpose run`` a generated data set goes through (see :func:`run_pipeline`)."""
     ap.add_argument("--pipeline", default="gnc_pose", help="name in pipelines/ or a YAML path")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--keep", help="write the data set and the run here instead of a temporary folder")
     ap.add_argument("--cache", help="template cache folder (default: the run's own)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
+
+
+def run_pipeline(manifest: Path, out: Path, args, limit: int | None = None) -> None:
+    """``batchpose run`` on ``manifest`` into ``out`` with the :func:`run_options` in ``args``."""
+    pipeline = args.pipeline if args.pipeline.endswith(".yaml") else str(REPO / "pipelines" / f"{args.pipeline}.yaml")
+    cmd = [sys.executable, "-m", "batchpose", "run", pipeline, "--manifest", str(manifest), "--out", str(out)]
+    cmd += ["--jobs", str(args.jobs), "--overwrite"]
+    if limit:
+        cmd += ["--limit", str(limit)]
+    if args.cache:
+        cmd += ["--cache", args.cache]
+    for s in args.set:
+        cmd += ["--set", s]
+    print("$", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True, cwd=REPO)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--frames", type=int, default=8, help="frames per object (default 8)")
+    ap.add_argument("--objects", nargs="+", help="object names (default: every mesh in ../shared/data/ycb_models)")
+    run_options(ap)
     args = ap.parse_args()
     if not MODELS.is_dir() or not DEV.is_dir():
         print(f"N/A: {DATA} not found (needs ycb_models and ycbv_dev)")
@@ -179,15 +199,7 @@ def main() -> int:
     out = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="batchpose_heldout_"))
     print(f"# heldout: {machine()}; code {code_version()}; {len(objects)} objects x {args.frames} frames -> {out}")
     manifest = generate(out, objects, args.frames, args.seed)
-    pipeline = args.pipeline if args.pipeline.endswith(".yaml") else str(REPO / "pipelines" / f"{args.pipeline}.yaml")
-    cmd = [sys.executable, "-m", "batchpose", "run", pipeline, "--manifest", str(manifest), "--out", str(out / "run")]
-    cmd += ["--jobs", str(args.jobs), "--overwrite"]
-    if args.cache:
-        cmd += ["--cache", args.cache]
-    for s in args.set:
-        cmd += ["--set", s]
-    print("$", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, cwd=REPO)
+    run_pipeline(manifest, out / "run", args)
     summary = pd.read_csv(out / "run" / "report" / "summary.csv")
     per = summary[~summary["obj_name"].isin(["mean", "pooled"])].copy()
     # A wrong pose reported ok misleads a user more than a failure: count them (ADD-S > 0.1 diameter).

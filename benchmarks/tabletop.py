@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -34,15 +33,15 @@ import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import REPO, code_version, machine, table  # noqa: E402
-from heldout import DEV, MODELS, compose  # noqa: E402
+from _common import code_version, machine, table  # noqa: E402
+from heldout import DEV, MODELS, compose, run_options, run_pipeline  # noqa: E402
 
 from batchpose.config import PlaneConfig  # noqa: E402
 from batchpose.datasets import YcbvFrameSource  # noqa: E402
 from batchpose.frames import decode_depth, decode_image  # noqa: E402
 from batchpose.mesh import load_mesh  # noqa: E402
 from batchpose.metrics import vocap_auc  # noqa: E402
-from batchpose.plane import resting_faces, support_plane  # noqa: E402
+from batchpose.plane import resting, resting_faces, support_plane  # noqa: E402
 from batchpose.render import get_renderer  # noqa: E402
 
 ALL = (
@@ -53,12 +52,6 @@ ALL = (
 SCENE = 1  # ycbv_dev's video 0001
 
 
-def _turn_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    from batchpose.plane import _turn_to as turn  # noqa: PLC0415
-
-    return turn(a, b)
-
-
 def stand(model, faces, plane, real: dict, K, w, h, rng, renderer, sensor: np.ndarray):
     """A random resting pose on the plane, in view and clear of the real objects; (T, rgb, visible depth) or
     None after 200 tries."""
@@ -67,8 +60,7 @@ def stand(model, faces, plane, real: dict, K, w, h, rng, renderer, sensor: np.nd
     hull = np.asarray(model.mesh.convex_hull.vertices)
     for _ in range(200):
         face = faces[rng.integers(len(faces))]
-        R = cv2.Rodrigues(n * rng.uniform(0, 2 * np.pi))[0] @ _turn_to(face, -n)
-        height = float(n @ (R @ centre) - (hull @ R.T @ n).min())
+        R, height = resting(face, n, rng.uniform(0, 2 * np.pi), hull, centre)
         ray = np.linalg.solve(K, [rng.uniform(0, w), rng.uniform(0, h), 1.0])
         if ray @ n >= 0:
             continue
@@ -157,33 +149,14 @@ def generate(out: Path, objects: list[str], n: int, seed: int) -> tuple[Path, Pa
     return manifests[0], manifests[1]
 
 
-def run(manifest: Path, out: Path, args, limit: int | None = None) -> None:
-    pipeline = args.pipeline if args.pipeline.endswith(".yaml") else str(REPO / "pipelines" / f"{args.pipeline}.yaml")
-    cmd = [sys.executable, "-m", "batchpose", "run", pipeline, "--manifest", str(manifest), "--out", str(out)]
-    cmd += ["--jobs", str(args.jobs), "--overwrite"]
-    if limit:
-        cmd += ["--limit", str(limit)]
-    if args.cache:
-        cmd += ["--cache", args.cache]
-    for s in args.set:
-        cmd += ["--set", s]
-    print("$", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, cwd=REPO)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     ap.add_argument("--frames", type=int, default=6, help="frames per object (default 6)")
     ap.add_argument("--objects", nargs="+", help="objects to stand on the table (default: those not in video 0001)")
-    ap.add_argument("--pipeline", default="gnc_pose", help="name in pipelines/ or a YAML path")
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--absent", type=int, default=0, help="first frames run again asking for every object (default 0)")
-    ap.add_argument("--keep", help="write the data set and the runs here instead of a temporary folder")
-    ap.add_argument("--cache", help="template cache folder (default: the run's own)")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
+    run_options(ap)
     args = ap.parse_args()
     if not MODELS.is_dir() or not DEV.is_dir():
         print(f"N/A: {MODELS.parent} not found (needs ycb_models and ycbv_dev)")
@@ -193,7 +166,7 @@ def main() -> int:
     out = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="batchpose_tabletop_"))
     print(f"# tabletop: {machine()}; code {code_version()}; {len(objects)} objects x {args.frames} frames -> {out}")
     annotated, every = generate(out, objects, args.frames, args.seed)
-    run(annotated, out / "run", args)
+    run_pipeline(annotated, out / "run", args)
     inst = pd.read_csv(out / "run" / "report" / "frames.csv", dtype={"frame_id": str})
     poses = pd.read_parquet(out / "run" / "poses.parquet", columns=["frame_id", "obj_name", "reason"])
     inst = inst.drop(columns="reason").merge(poses, on=["frame_id", "obj_name"], how="left")
@@ -231,7 +204,7 @@ def main() -> int:
         f"{int(real['reason'].fillna('').str.contains('plane search').sum())} by the plane search"
     )
     if args.absent:
-        run(every, out / "run_all", args, limit=args.absent)
+        run_pipeline(every, out / "run_all", args, limit=args.absent)
         allp = pd.read_parquet(out / "run_all" / "poses.parquet", columns=["frame_id", "obj_name", "status", "reason"])
         shown = {(r.frame_id, r.obj_name) for r in inst.itertuples()}
         absent = allp[[(r.frame_id, r.obj_name) not in shown for r in allp.itertuples()]]
