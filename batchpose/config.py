@@ -73,8 +73,10 @@ class FeatureConfig:
     (the ``paper`` and ``fast`` pipelines keep 0.04; reports/ACCURACY.md has both)."""
     edge_threshold: float = 10.0
     sigma: float = 1.6
-    root_sift: bool = False
-    """Use RootSIFT (Hellinger-normalised) descriptors."""
+    root_sift: bool = True
+    """Use RootSIFT (Arandjelović & Zisserman 2012: L1-normalised, square-rooted) descriptors, compared by
+    Euclidean distance = Hellinger kernel; the ``paper`` pipeline keeps SIFT's (reports/ACCURACY.md,
+    "Session 11")."""
     crop_padding_px: int = 16
     """Templates: run SIFT only on the object's bounding box plus this margin (saves time, same features)."""
 

@@ -104,3 +104,25 @@ def test_a_render_does_not_depend_on_what_was_rendered_before(cracker_model):
         assert np.array_equal(want[0], got[0]) and np.array_equal(want[1], got[1])
     fresh.close()
     switched.close()
+
+
+def test_root_sift_descriptors_are_the_hellinger_map_of_sift_and_key_their_own_library(cracker_model):
+    """RootSIFT (the default; ``paper`` keeps SIFT): each descriptor L1-normalised and square-rooted, so that
+    Euclidean distance compares them by the Hellinger kernel; a library of one is never loaded for the other."""
+    import dataclasses  # noqa: PLC0415
+
+    from batchpose.features import detect  # noqa: PLC0415
+    from batchpose.views import look_at  # noqa: PLC0415
+
+    T = look_at(cracker_model.center_m + np.array([0.4, 0.2, 0.3]), cracker_model.center_m, np.array([0, 0, 1.0]))
+    rgb, _ = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
+    gray = rgb.mean(axis=2).astype(np.uint8)
+    root = EstimatorConfig()
+    sift = dataclasses.replace(root, features=dataclasses.replace(root.features, root_sift=False))
+    assert root.features.root_sift
+    xy_r, d_r = detect(gray, root.features)[:2]
+    xy_s, d_s = detect(gray, sift.features)[:2]
+    assert len(d_r) > 100 and np.array_equal(xy_r, xy_s)
+    np.testing.assert_allclose(d_r, 512.0 * np.sqrt(d_s / d_s.sum(axis=1, keepdims=True)), rtol=1e-4, atol=1e-3)
+    key = build_templates.library_key
+    assert key(cracker_model, root, K_SYN, 640, 480) != key(cracker_model, sift, K_SYN, 640, 480)
