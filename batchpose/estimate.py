@@ -29,7 +29,7 @@ from batchpose.errors import BatchposeError, ImageError
 from batchpose.features import detect, detect_shapes, make_sift, to_gray
 from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image
 from batchpose.gnc_pnp import solve_pose
-from batchpose.plane import Target, resting_faces, search_plane, support_plane
+from batchpose.plane import Target, resting_faces, search_plane, stable_faces, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.search import Silhouettes, search, texture_match
@@ -133,6 +133,7 @@ class PoseEstimator:
         self._surfaces: dict[str, Surface] = {}
         self._silhouettes: dict[str, Silhouettes] = {}
         self._targets: dict[str, Target] = {}
+        self._stable: dict[str, np.ndarray] = {}
         # The depth search's and the plane search's last pose of each object: ((scene_id, im_id, stamp_ns, K), pose).
         self._found: dict[str, tuple[tuple, np.ndarray]] = {}
         self._placed: dict[str, tuple[tuple, np.ndarray]] = {}
@@ -884,7 +885,7 @@ class PoseEstimator:
             for r in records
             if r.ok and r.confidence >= pc.min_confidence and r.obj_name in self.models
         }
-        plane = support_plane(found, pc)
+        plane = support_plane(found, pc, {name: self._stable_faces(name) for name in found})
         if plane is None:
             for rec in lost:
                 self._placed.pop(rec.obj_name, None)
@@ -930,6 +931,12 @@ class PoseEstimator:
                 f"{100 * placed.visible:.0f}% of it unhidden, colour log-odds {placed.colour:.1f}, "
                 f"texture match {placed.match:.2f}, contrast {placed.contrast:.1f}"
             )
+
+    def _stable_faces(self, name: str) -> np.ndarray:
+        """The faces the object can rest on (:func:`batchpose.plane.stable_faces`; made once)."""
+        if name not in self._stable:
+            self._stable[name] = stable_faces(self.models[name].mesh)
+        return self._stable[name]
 
     def _target(self, name: str) -> Target:
         """What the plane search needs of the object (made once)."""

@@ -8,25 +8,34 @@ object standing on it at a given pixel is at one distance only. For such an obje
 
 1. **support plane** (:func:`support_plane`): every found object's convex-hull faces propose a plane normal;
    the one along which all of them reach equally low (within ``max_spread_m``), with the camera above it,
-   is the surface they rest on;
+   and which each of them rests on with one of the faces it can stand on (two objects reach equally low
+   along many normals, most of them touching a corner or an edge), is the surface they rest on;
 2. **resting poses**: the object's stable poses on a plane (:meth:`trimesh.Trimesh.compute_stable_poses`,
    those with probability at least ``min_stable``), each turned about the plane's normal in ``angles``
    steps;
 3. **search**: for each resting pose and turn, its silhouette is correlated with the frame's colour
    log-odds map (the object's colours against the frame's outside the found objects; the pixels the found
    objects cover count 0: they are explained), at each place with the size the plane's distance there
-   gives it; of the best distinct placements (4 x ``starts``), rendered, the ``starts`` whose texture and
-   colour match the frame best go on (a silhouette cannot tell a box's front from its back);
+   gives it. The best distinct placements by the colours they hold (4 x ``starts``) are candidates, and
+   so are the best at a few other places by how much the silhouette *stands out* from a thin ring around
+   it — a broad patch of the object's colours (a shadow under a grey-and-black marker, a found object's
+   edge) holds more of them than a thin object does, but does not stand out. Rendered, the ``starts``
+   whose texture and colour match the frame best go on (a silhouette cannot tell a box's front from its
+   back), and the best at two places none of those is at;
 4. **refine**: each is turned about the normal and slid along the plane while the mesh rendered there
-   matches the frame better, over the silhouette pixels no found object hides: texture correlation in Lab
-   plus ``colour_weight`` x mean colour log-odds (in 15 and 8 degree steps; the best then in 4 and 2);
-5. **verify**: the best is kept if at least ``min_visible`` of its silhouette is not hidden by a found object,
-   those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
+   matches the frame better, over the silhouette pixels no found object hides or covers (those behind it
+   are the found object's texture): texture correlation in Lab plus ``colour_weight`` x mean colour
+   log-odds (in 15 and 8 degree steps; the best then in 4 and 2);
+5. **verify**: a placement is kept if at least ``min_visible`` of its silhouette is not hidden by a found
+   object, those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
    silhouette by ``min_contrast`` (it stands out from where it stands), and the texture correlation is
-   at least ``min_match``; with a weak SIFT pose, it must also match the frame better than that pose.
+   at least ``min_match``; with a weak SIFT pose, it must also match the frame better than that pose. The
+   best refined placement that passes is refined in the fine steps (and the next one when that no longer
+   passes).
 
 With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
-and searches only when that no longer passes. reports/ACCURACY.md ("Session 10") has the figures.
+and searches only when that no longer passes. reports/ACCURACY.md ("Session 10", "Session 11") has the
+figures.
 """
 
 from __future__ import annotations
@@ -46,8 +55,20 @@ LEVEL = 4
 HIDDEN_M = 0.01
 #: Consecutive sizes of the coarse search differ by this factor (the plane gives each place one of them).
 SIZE_STEP = 1.1
+#: A support plane must be one each found object rests on with a stable face turned at most this far from it.
+STABLE_DEG = 10.0
 #: The coarse search's best placements judged by rendering (texture and colour) for each one refined.
 CANDIDATES_PER_START = 4
+#: Besides its best, the coarse search keeps candidates at this many other places ...
+SPOTS = 4
+#: ... and the refinement starts from the best at this many places no better start is at.
+EXTRA_STARTS = 2
+#: The coarse search's standing-out score keeps this many places for each resting pose and turn (at least half
+#: the object's span apart).
+PEAKS = 3
+#: The coarse search's ring around a silhouette: this fraction of the silhouette's half-extent wide (at least
+#: a pixel at its resolution).
+COARSE_RING = 0.1
 #: The ring around a silhouette whose colours :attr:`Placed.contrast` compares with the silhouette's (4 px wide).
 RING_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))
 #: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
@@ -79,12 +100,18 @@ class Placed:
     followed: bool = False
 
 
-def support_plane(found: dict[str, tuple[np.ndarray, np.ndarray]], conf: PlaneConfig) -> Plane | None:
+def support_plane(
+    found: dict[str, tuple[np.ndarray, np.ndarray]], conf: PlaneConfig, stable: dict[str, np.ndarray] | None = None
+) -> Plane | None:
     """The plane the found objects rest on, or None when they do not rest on one.
 
     Args:
         found: name -> (cam_from_model, hull) for each confidently found object, ``hull`` a
             trimesh convex hull of its mesh (model frame).
+        stable: name -> (K, 3) the model-frame outward normals of the faces the object can rest on
+            (:func:`stable_faces`): a plane is one each object rests on with one of them (within
+            STABLE_DEG) — two objects reach down equally to many planes, most of them touching a corner
+            or an edge.
     """
     if len(found) < conf.min_objects:
         return None
@@ -98,10 +125,20 @@ def support_plane(found: dict[str, tuple[np.ndarray, np.ndarray]], conf: PlaneCo
     offset = lows.mean(axis=0)
     spread = lows.max(axis=0) - lows.min(axis=0)
     spread[offset >= 0] = np.inf  # the camera (the origin) must be above the plane
+    for name, faces in (stable or {}).items():
+        if name in found:
+            down = faces @ found[name][0][:3, :3].T  # the faces' normals in the camera; resting, one points down
+            spread[(down @ -normals.T).max(axis=0) < np.cos(np.deg2rad(STABLE_DEG))] = np.inf
     best = int(np.argmin(spread))
     if not spread[best] <= conf.max_spread_m:
         return None
     return Plane(normals[best], float(offset[best]), float(spread[best]), tuple(found))
+
+
+def stable_faces(mesh) -> np.ndarray:
+    """(K, 3) model-frame outward normals of every face the mesh can rest on (trimesh's stable poses)."""
+    transforms, _ = mesh.compute_stable_poses(n_samples=1)
+    return np.array([np.linalg.inv(T)[:3, :3] @ [0.0, 0.0, -1.0] for T in transforms]).reshape(-1, 3)
 
 
 def resting_faces(mesh, min_stable: float) -> list[np.ndarray]:
@@ -175,7 +212,9 @@ class _Judge:
         crop, win = np.s_[ya - y0 : yb - y0, xa - x0 : xb - x0], np.s_[ya:yb, xa:xb]
         n = int((ren_depth > 0).sum())  # parts outside the frame count as not seen
         sil, depth = ren_depth[crop] > 0, ren_depth[crop]
-        seen = sil & ~(self.occluder_depth[win] < depth - HIDDEN_M)
+        # A found object nearer than this one hides it; one behind it does not, but explains those pixels
+        # (they are its texture): they are evidence neither way.
+        seen = sil & ~(self.occluder_depth[win] < depth - HIDDEN_M) & ~self.found_mask[win]
         k = int(seen.sum())
         if k < 30 or k < self.conf.min_visible * n:
             return -np.inf, None
@@ -241,16 +280,19 @@ def search_plane(
         return None
     judge, floor = judge_around(places)
     # The coarse search cannot tell a box on its front from one on its back (or a bottle turned half round):
-    # the texture decides which of its placements are refined.
-    scored = sorted(((judge(T)[0], k) for k, T in enumerate(places)), reverse=True)
-    best: tuple[float, Placed | None] = (-np.inf, None)
-    for _, k in scored[: conf.starts]:
-        refined = _refine(places[k], plane, target, judge, COARSE_STEPS)
-        if refined[1] is not None and refined[0] > best[0]:
-            best = refined
-    if best[1] is not None:
-        best = _refine(best[1].cam_from_model, plane, target, judge, FINE_STEPS)
-    return best[1] if passes(*best, floor) else None
+    # the texture decides which of its placements are refined — the best at each place first, so that one
+    # place whose colours fit in several ways does not take every start.
+    scored = [k for _, k in sorted(((judge(T)[0], k) for k, T in enumerate(places)), reverse=True)]
+    starts = _spread(scored[: conf.starts], scored, places, target, EXTRA_STARTS)
+    # Refined, a wrong placement can match the frame's texture better than the right one yet not stand out
+    # from its surroundings: the best of those that pass the checks goes on.
+    refined = [_refine(places[k], plane, target, judge, COARSE_STEPS) for k in starts]
+    refined = sorted((r for r in refined if passes(*r, floor)), key=lambda r: -r[0])
+    for start in refined:
+        best = _refine(start[1].cam_from_model, plane, target, judge, FINE_STEPS)
+        if passes(*best, floor):
+            return best[1]
+    return None
 
 
 def _span_px(T: np.ndarray, K: np.ndarray, target: Target) -> float:
@@ -262,7 +304,9 @@ def _span_px(T: np.ndarray, K: np.ndarray, target: Target) -> float:
 def _places(
     odds: np.ndarray, K: np.ndarray, plane: Plane, target: Target, count: int, conf: PlaneConfig
 ) -> list[np.ndarray]:
-    """The coarse search: the ``count`` best distinct resting placements, best first."""
+    """The coarse search: the ``count`` best distinct resting placements by the colours a silhouette holds,
+    best first; then, at each of SPOTS other places, the CANDIDATES_PER_START best by how much the silhouette
+    stands out from the ring around it (:func:`_kernels`)."""
     h, w = odds.shape[0] // LEVEL, odds.shape[1] // LEVEL
     small = cv2.resize(odds, (w, h), interpolation=cv2.INTER_AREA)
     Ks = K.copy()
@@ -272,7 +316,8 @@ def _places(
     along = rays @ plane.normal
     n = plane.normal
     f_px = 0.5 * (Ks[0, 0] + Ks[1, 1])
-    found = []
+    held: list[tuple[float, np.ndarray]] = []  # by the colours held
+    standing: list[tuple[float, np.ndarray]] = []  # by standing out
     for face in target.faces:
         for angle in np.deg2rad(np.arange(0.0, 360.0, 360.0 / conf.angles)):
             R, height = resting(face, n, angle, target.hull, target.centre)
@@ -282,31 +327,75 @@ def _places(
             ok = (z > 0) & (span >= conf.min_span_px / LEVEL) & (span <= 0.9 * h)
             if not ok.any():
                 continue
-            best = np.full((h, w), -np.inf, np.float32)
+            best = np.full((2, h, w), -np.inf, np.float32)
             z_k = float(np.nanmin(np.where(ok, z, np.nan)))
             while z_k <= np.nanmax(np.where(ok, z, np.nan)) * SIZE_STEP:
-                mask, c = _silhouette(R, target, Ks, z_k)
+                mask, ring, c = _kernels(R, target, Ks, z_k)
                 band = ok & (np.abs(np.log(z / z_k)) <= 0.5 * np.log(SIZE_STEP))
                 if band.any() and mask.shape[0] < h and mask.shape[1] < w:
                     S = cv2.matchTemplate(small, mask, cv2.TM_CCORR)
-                    full = np.full((h, w), -np.inf, np.float32)
-                    full[c[1] : c[1] + S.shape[0], c[0] : c[0] + S.shape[1]] = S
+                    S = np.stack([S, S - cv2.matchTemplate(small, ring, cv2.TM_CCORR)])
+                    full = np.full((2, h, w), -np.inf, np.float32)
+                    full[:, c[1] : c[1] + S.shape[1], c[0] : c[0] + S.shape[2]] = S
                     best = np.where(band, np.maximum(best, full), best)
                 z_k *= SIZE_STEP
-            y, x = np.unravel_index(int(np.argmax(best)), best.shape)
-            if np.isfinite(best[y, x]):
+
+            def pose_at(y: int, x: int, R=R, z=z) -> np.ndarray:
                 T = np.eye(4)
                 T[:3, :3] = R
                 T[:3, 3] = z[y, x] * rays[y, x] - R @ target.centre
-                found.append((float(best[y, x]), T))
-    found.sort(key=lambda f: -f[0])
-    kept: list[np.ndarray] = []
-    for _, T in found:
-        if not any(_near(T, k, target) for k in kept):
-            kept.append(T)
-        if len(kept) == count:
+                return T
+
+            y, x = np.unravel_index(int(np.argmax(best[0])), (h, w))
+            if np.isfinite(best[0, y, x]):
+                held.append((float(best[0, y, x]), pose_at(y, x)))
+            for _ in range(PEAKS):  # a few places a turn: the first may be a found object's edge
+                y, x = np.unravel_index(int(np.argmax(best[1])), (h, w))
+                if not np.isfinite(best[1, y, x]):
+                    break
+                standing.append((float(best[1, y, x]), pose_at(y, x)))
+                r = max(int(0.5 * span[y, x]), 1)
+                best[1, max(y - r, 0) : y + r + 1, max(x - r, 0) : x + r + 1] = -np.inf
+    distinct: list[np.ndarray] = []
+    for _, T in sorted(held, key=lambda f: -f[0]):
+        if not any(_near(T, k, target) for k in distinct):
+            distinct.append(T)
+        if len(distinct) == count:
             break
-    return kept
+    taken = [_centre(T, target) for T in distinct]
+    spots: list[tuple[np.ndarray, list[np.ndarray]]] = []
+    for _, T in sorted(standing, key=lambda f: -f[0]):
+        c = _centre(T, target)
+        if any(np.linalg.norm(c - t) < 0.5 * target.diameter_m for t in taken):
+            continue
+        at = [s for s in spots if np.linalg.norm(c - s[0]) < 0.5 * target.diameter_m]
+        if not at and len(spots) < SPOTS:
+            spots.append((c, [T]))
+        elif at and len(at[0][1]) < CANDIDATES_PER_START and not any(_near(T, k, target) for k in at[0][1]):
+            at[0][1].append(T)
+    return distinct + [T for _, turns in spots for T in turns]
+
+
+def _centre(T: np.ndarray, target: Target) -> np.ndarray:
+    return T[:3, :3] @ target.centre + T[:3, 3]
+
+
+def _spread(chosen: list[int], ranked, poses: list[np.ndarray], target: Target, extra: int) -> list[int]:
+    """``chosen`` and the best of ``ranked`` at each of up to ``extra`` other places (a place: centres within
+    half the object's diameter) — so that one place whose colours fit the object in several ways (a shadow of
+    its colours, a found object's edge) cannot take every candidate."""
+    out = list(chosen)
+    places = [_centre(poses[k], target) for k in out]
+    added = 0
+    for k in ranked:
+        if added == extra:
+            break
+        c = _centre(poses[k], target)
+        if k not in out and not any(np.linalg.norm(c - p) < 0.5 * target.diameter_m for p in places):
+            out.append(k)
+            places.append(c)
+            added += 1
+    return out
 
 
 def _near(A: np.ndarray, B: np.ndarray, target: Target) -> bool:
@@ -316,16 +405,21 @@ def _near(A: np.ndarray, B: np.ndarray, target: Target) -> bool:
     return np.linalg.norm(ca - cb) < 0.2 * target.diameter_m and turn < 20.0
 
 
-def _silhouette(R: np.ndarray, target: Target, Ks: np.ndarray, z: float) -> tuple[np.ndarray, tuple[int, int]]:
-    """The object turned by R with its centre ``z`` away on the optical axis, as a filled hull polygon; and the
-    centre's pixel in it."""
+def _kernels(R: np.ndarray, target: Target, Ks: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """The coarse search's kernels for the object turned by R with its centre ``z`` away on the optical axis:
+    its filled hull polygon (1 inside), and the thin ring around it weighted so that it sums to the polygon's
+    area (the polygon's correlation minus the ring's: its area times how much more of the object's colours it
+    holds than its surroundings — a broad patch of them, a shadow, scores nothing); and the centre's pixel."""
     p = target.hull @ R.T + (np.array([0.0, 0.0, z]) - R @ target.centre)
     xy = p[:, :2] / p[:, 2:] * [Ks[0, 0], Ks[1, 1]]
-    r = int(np.ceil(np.abs(xy).max())) + 1
+    extent = float(np.abs(xy).max())
+    r = int(np.ceil(extent * (1.0 + COARSE_RING))) + 2
     mask = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
     poly = cv2.convexHull(np.round(xy + r).astype(np.int32))
     cv2.fillConvexPoly(mask, poly, 1.0)
-    return mask, (r, r)
+    width = max(1, int(round(COARSE_RING * extent)))
+    ring = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))) - mask
+    return mask, ring * (mask.sum() / max(float(ring.sum()), 1.0)), (r, r)
 
 
 def _refine(start: np.ndarray, plane: Plane, target: Target, judge: _Judge, steps) -> tuple[float, Placed | None]:

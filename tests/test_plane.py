@@ -14,7 +14,7 @@ from batchpose.config import ConfigError, PlaneConfig, load_estimator_config
 from batchpose.estimate import PoseEstimator
 from batchpose.frames import Camera, Frame
 from batchpose.mesh import load_mesh
-from batchpose.plane import resting_faces, support_plane
+from batchpose.plane import resting_faces, stable_faces, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.render import get_renderer
 from batchpose.views import look_at
@@ -54,6 +54,26 @@ def test_support_plane_of_objects_resting_on_a_table(cracker_model):
     lifted[:3, 3] += 0.1 * table_normal  # held 10 cm above the table: no common plane
     assert support_plane({"a": (A, _hull(cracker_model)), "b": (lifted, _hull(gelatin))}, PlaneConfig()) is None
     assert support_plane({"a": (A, _hull(cracker_model))}, PlaneConfig()) is None  # one object
+
+
+def test_support_plane_is_one_the_objects_rest_on_with_a_face(cracker_model):
+    """Two objects reach down equally to many planes; the one they rest on touches each with a stable face.
+    A box balanced on its corner beside the cracker box (its lowest point on the table too) rests on nothing."""
+    gelatin = load_mesh(GELATIN)
+    A = _on_table(cracker_model.mesh, -0.12, 0.05, 30)
+    tilt = np.eye(4)
+    tilt[:3, :3] = cv2.Rodrigues(np.array([0.6, 0.5, 0.0]))[0]
+    B = _on_table(gelatin.mesh, 0.1, -0.02, 0) @ tilt
+    low = gelatin.mesh.convex_hull.vertices @ (CAM_FROM_WORLD.T @ B)[:3, :3].T  # world frame, about the origin
+    B[:3, 3] -= CAM_FROM_WORLD[:3, 2] * (low[:, 2].min() + (np.linalg.inv(CAM_FROM_WORLD) @ B)[2, 3])
+    found = {"a": (A, _hull(cracker_model)), "b": (B, _hull(gelatin))}
+    stable = {"a": stable_faces(cracker_model.mesh), "b": stable_faces(gelatin.mesh)}
+    table = support_plane(found, PlaneConfig())
+    assert table is not None and _angle_deg(table.normal, CAM_FROM_WORLD[:3, 2]) < 0.5  # both reach it
+    assert support_plane(found, PlaneConfig(), stable) is None
+    B_flat = _on_table(gelatin.mesh, 0.1, -0.02, 0)
+    flat = support_plane({"a": found["a"], "b": (B_flat, _hull(gelatin))}, PlaneConfig(), stable)
+    assert flat is not None and _angle_deg(flat.normal, CAM_FROM_WORLD[:3, 2]) < 0.5
 
 
 def test_resting_faces_of_a_box():
@@ -198,3 +218,24 @@ def test_a_weak_pose_must_look_like_the_frame(cracker_model, cracker_library, of
         assert rec.status == "low_confidence" and rec.reason.startswith(
             "weak pose (confidence 0.35 < verify_below 0.5) whose mesh does not look like the frame there"
         )
+
+
+def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch_of_its_colours():
+    """A broad patch of the object's colours nearer the camera (a shadow, a cloth) holds more of them than the
+    thin object itself does: the coarse search must still offer a placement where the object stands out."""
+    from batchpose.plane import Plane, Target, _places
+
+    marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
+    hull = np.asarray(marker.convex_hull.vertices)
+    target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(marker, 0.02)), np.zeros(1))
+    normal = CAM_FROM_WORLD[:3, 2]
+    plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
+    T = _on_table(marker, 0.1, 0.1, 30)  # ~115 x 15 px, rows 292-357
+    odds = np.full((480, 640), -0.5, np.float32)  # the table
+    odds[370:, 60:580] = 2.0  # the patch
+    p = (hull @ T[:3, :3].T + T[:3, 3]) @ K_SYN.T
+    cv2.fillConvexPoly(odds, cv2.convexHull(np.round(p[:, :2] / p[:, 2:]).astype(np.int32)), 2.0)
+    found = _places(odds, K_SYN, plane, target, 16, PlaneConfig())
+    near = [np.linalg.norm(F[:3, 3] - T[:3, 3]) for F in found]
+    assert min(near) < 0.2 * target.diameter_m, sorted(near)[:4]  # by colours held alone: 9 cm off at best
+    assert sum(d > target.diameter_m for d in near) >= 8  # the patch keeps its candidates too
