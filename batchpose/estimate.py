@@ -133,7 +133,7 @@ class PoseEstimator:
         self._surfaces: dict[str, Surface] = {}
         self._silhouettes: dict[str, Silhouettes] = {}
         self._targets: dict[str, Target] = {}
-        self._stable: dict[str, np.ndarray] = {}
+        self._stable: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         # The depth search's and the plane search's last pose of each object: ((scene_id, im_id, stamp_ns, K), pose).
         self._found: dict[str, tuple[tuple, np.ndarray]] = {}
         self._placed: dict[str, tuple[tuple, np.ndarray]] = {}
@@ -885,7 +885,7 @@ class PoseEstimator:
             for r in records
             if r.ok and r.confidence >= pc.min_confidence and r.obj_name in self.models
         }
-        plane = support_plane(found, pc, {name: self._stable_faces(name) for name in found})
+        plane = support_plane(found, pc, {name: self._stable_faces(name)[0] for name in found})
         if plane is None:
             for rec in lost:
                 self._placed.pop(rec.obj_name, None)
@@ -932,7 +932,7 @@ class PoseEstimator:
                 f"texture match {placed.match:.2f}, contrast {placed.contrast:.1f}"
             )
 
-    def _stable_faces(self, name: str) -> np.ndarray:
+    def _stable_faces(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """The faces the object can rest on (:func:`batchpose.plane.stable_faces`; made once)."""
         if name not in self._stable:
             self._stable[name] = stable_faces(self.models[name].mesh)
@@ -946,7 +946,7 @@ class PoseEstimator:
                 np.asarray(mesh.convex_hull.vertices),
                 np.asarray(mesh.bounding_box.centroid),
                 self.models[name].diameter_m,
-                tuple(resting_faces(mesh, self.conf.plane.min_stable)),
+                tuple(resting_faces(self._stable_faces(name), self.conf.plane.min_stable)),
                 self._silhouettes_of(name).hist,
             )
         return self._targets[name]

@@ -109,7 +109,7 @@ def support_plane(
         found: name -> (cam_from_model, hull) for each confidently found object, ``hull`` a
             trimesh convex hull of its mesh (model frame).
         stable: name -> (K, 3) the model-frame outward normals of the faces the object can rest on
-            (:func:`stable_faces`): a plane is one each object rests on with one of them (within
+            (:func:`stable_faces`' first): a plane is one each object rests on with one of them (within
             STABLE_DEG) — two objects reach down equally to many planes, most of them touching a corner
             or an edge.
     """
@@ -135,19 +135,19 @@ def support_plane(
     return Plane(normals[best], float(offset[best]), float(spread[best]), tuple(found))
 
 
-def stable_faces(mesh) -> np.ndarray:
-    """(K, 3) model-frame outward normals of every face the mesh can rest on (trimesh's stable poses)."""
-    transforms, _ = mesh.compute_stable_poses(n_samples=1)
-    return np.array([np.linalg.inv(T)[:3, :3] @ [0.0, 0.0, -1.0] for T in transforms]).reshape(-1, 3)
-
-
-def resting_faces(mesh, min_stable: float) -> list[np.ndarray]:
-    """Model-frame outward normals of the faces the mesh rests on with probability at least ``min_stable``
-    (stable poses within 15 degrees of one another counted as one)."""
+def stable_faces(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Every face the mesh can rest on (trimesh's stable poses): (K, 3) model-frame outward normals and (K,)
+    probabilities."""
     transforms, probs = mesh.compute_stable_poses(n_samples=1)
+    down = np.array([np.linalg.inv(T)[:3, :3] @ [0.0, 0.0, -1.0] for T in transforms]).reshape(-1, 3)
+    return down, np.asarray(probs, dtype=float)
+
+
+def resting_faces(stable: tuple[np.ndarray, np.ndarray], min_stable: float) -> list[np.ndarray]:
+    """Of ``stable`` (:func:`stable_faces`), the normals of the faces the mesh rests on with probability at
+    least ``min_stable`` (stable poses within 15 degrees of one another counted as one), likeliest first."""
     faces: list[list] = []
-    for T, p in zip(transforms, probs, strict=True):
-        down = np.linalg.inv(T)[:3, :3] @ np.array([0.0, 0.0, -1.0])
+    for down, p in zip(*stable, strict=True):
         for f in faces:
             if f[1] @ down > np.cos(np.deg2rad(15.0)):
                 f[0] += p
@@ -366,9 +366,9 @@ def _places(
     spots: list[tuple[np.ndarray, list[np.ndarray]]] = []
     for _, T in sorted(standing, key=lambda f: -f[0]):
         c = _centre(T, target)
-        if any(np.linalg.norm(c - t) < 0.5 * target.diameter_m for t in taken):
+        if any(_same_place(c, t, target) for t in taken):
             continue
-        at = [s for s in spots if np.linalg.norm(c - s[0]) < 0.5 * target.diameter_m]
+        at = [s for s in spots if _same_place(c, s[0], target)]
         if not at and len(spots) < SPOTS:
             spots.append((c, [T]))
         elif at and len(at[0][1]) < CANDIDATES_PER_START and not any(_near(T, k, target) for k in at[0][1]):
@@ -380,10 +380,15 @@ def _centre(T: np.ndarray, target: Target) -> np.ndarray:
     return T[:3, :3] @ target.centre + T[:3, 3]
 
 
+def _same_place(a: np.ndarray, b: np.ndarray, target: Target) -> bool:
+    """Object centres ``a`` and ``b`` within half its diameter: one place for the coarse search's spread."""
+    return bool(np.linalg.norm(a - b) < 0.5 * target.diameter_m)
+
+
 def _spread(chosen: list[int], ranked, poses: list[np.ndarray], target: Target, extra: int) -> list[int]:
-    """``chosen`` and the best of ``ranked`` at each of up to ``extra`` other places (a place: centres within
-    half the object's diameter) — so that one place whose colours fit the object in several ways (a shadow of
-    its colours, a found object's edge) cannot take every candidate."""
+    """``chosen`` and the best of ``ranked`` at each of up to ``extra`` other places (:func:`_same_place`) —
+    so that one place whose colours fit the object in several ways (a shadow of its colours, a found
+    object's edge) cannot take every candidate."""
     out = list(chosen)
     places = [_centre(poses[k], target) for k in out]
     added = 0
@@ -391,7 +396,7 @@ def _spread(chosen: list[int], ranked, poses: list[np.ndarray], target: Target, 
         if added == extra:
             break
         c = _centre(poses[k], target)
-        if k not in out and not any(np.linalg.norm(c - p) < 0.5 * target.diameter_m for p in places):
+        if k not in out and not any(_same_place(c, p, target) for p in places):
             out.append(k)
             places.append(c)
             added += 1
@@ -400,9 +405,8 @@ def _spread(chosen: list[int], ranked, poses: list[np.ndarray], target: Target, 
 
 def _near(A: np.ndarray, B: np.ndarray, target: Target) -> bool:
     """Same place (centres within 0.2 diameter) and nearly the same turn (within 20 degrees)."""
-    ca, cb = A[:3, :3] @ target.centre + A[:3, 3], B[:3, :3] @ target.centre + B[:3, 3]
     turn = np.rad2deg(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1)))
-    return np.linalg.norm(ca - cb) < 0.2 * target.diameter_m and turn < 20.0
+    return np.linalg.norm(_centre(A, target) - _centre(B, target)) < 0.2 * target.diameter_m and turn < 20.0
 
 
 def _kernels(R: np.ndarray, target: Target, Ks: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:

@@ -41,7 +41,7 @@ from batchpose.datasets import YcbvFrameSource  # noqa: E402
 from batchpose.frames import decode_depth, decode_image  # noqa: E402
 from batchpose.mesh import load_mesh  # noqa: E402
 from batchpose.metrics import vocap_auc  # noqa: E402
-from batchpose.plane import resting, resting_faces, support_plane  # noqa: E402
+from batchpose.plane import resting, resting_faces, stable_faces, support_plane  # noqa: E402
 from batchpose.render import get_renderer  # noqa: E402
 
 ALL = (
@@ -100,7 +100,7 @@ def generate(out: Path, objects: list[str], n: int, seed: int) -> tuple[Path, Pa
     obj_ids = {name: k for k, name in enumerate(ALL, start=1)}
     for name in objects:
         model = meshes[name]
-        faces = resting_faces(model.mesh, conf.min_stable)
+        faces = resting_faces(stable_faces(model.mesh), conf.min_stable)
         scene = out / "data" / f"{obj_ids[name]:06d}"
         (scene / "rgb").mkdir(parents=True, exist_ok=True)
         (scene / "depth").mkdir(parents=True, exist_ok=True)

@@ -67,7 +67,7 @@ def test_support_plane_is_one_the_objects_rest_on_with_a_face(cracker_model):
     low = gelatin.mesh.convex_hull.vertices @ (CAM_FROM_WORLD.T @ B)[:3, :3].T  # world frame, about the origin
     B[:3, 3] -= CAM_FROM_WORLD[:3, 2] * (low[:, 2].min() + (np.linalg.inv(CAM_FROM_WORLD) @ B)[2, 3])
     found = {"a": (A, _hull(cracker_model)), "b": (B, _hull(gelatin))}
-    stable = {"a": stable_faces(cracker_model.mesh), "b": stable_faces(gelatin.mesh)}
+    stable = {"a": stable_faces(cracker_model.mesh)[0], "b": stable_faces(gelatin.mesh)[0]}
     table = support_plane(found, PlaneConfig())
     assert table is not None and _angle_deg(table.normal, CAM_FROM_WORLD[:3, 2]) < 0.5  # both reach it
     assert support_plane(found, PlaneConfig(), stable) is None
@@ -77,7 +77,7 @@ def test_support_plane_is_one_the_objects_rest_on_with_a_face(cracker_model):
 
 
 def test_resting_faces_of_a_box():
-    faces = resting_faces(trimesh.creation.box(extents=(0.1, 0.2, 0.3)), 0.02)
+    faces = resting_faces(stable_faces(trimesh.creation.box(extents=(0.1, 0.2, 0.3))), 0.02)
     assert len(faces) == 6 and all(np.isclose(np.abs(f).max(), 1.0) for f in faces)
     # The likeliest first: the box lies on one of its two largest faces (normal along x).
     assert np.isclose(abs(faces[0][0]), 1.0)
@@ -227,7 +227,7 @@ def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch
 
     marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
     hull = np.asarray(marker.convex_hull.vertices)
-    target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(marker, 0.02)), np.zeros(1))
+    target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(stable_faces(marker), 0.02)), np.zeros(1))
     normal = CAM_FROM_WORLD[:3, 2]
     plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
     T = _on_table(marker, 0.1, 0.1, 30)  # ~115 x 15 px, rows 292-357
