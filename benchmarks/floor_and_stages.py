@@ -166,15 +166,28 @@ def floor_pass(args, wanted: set[str], keep_buffers: bool = True) -> tuple[pd.Da
     return df, cores, other
 
 
-def shard_throughput(run_dir: Path) -> tuple[float, float]:
-    """Steady-state frames/s from shard mtimes (frames after the first finished shard / time since it),
-    and the first shard's mtime (epoch seconds)."""
+def shard_throughput(run_dir: Path, jobs: int) -> tuple[float, float, float]:
+    """Steady-state frames/s from shard completion times (mtimes): (steady, first to last, first shard mtime).
+
+    Steady is the window in which every worker had a task: from the ``jobs``-th shard to finish (every
+    worker has started up and finished a task) to the ``jobs``-th last (from then on a worker has no task
+    left while the others finish theirs), counting the frames of the shards finished inside it. With one
+    worker that is the first shard to the last. "First to last" counts every shard after the first, the
+    tail in which workers run out of tasks included: a short run pays that tail (up to a task's time on
+    all but one worker), a long recording pays it once.
+    """
     shards = sorted((run_dir / "shards").glob("shard-*.parquet"), key=lambda p: p.stat().st_mtime)
     if len(shards) < 2:
-        return float("nan"), float("nan")
-    n = sum(pd.read_parquet(p, columns=["frame_id"])["frame_id"].nunique() for p in shards[1:])
-    span = shards[-1].stat().st_mtime - shards[0].stat().st_mtime
-    return (n / span if span > 0 else float("nan")), shards[0].stat().st_mtime
+        return float("nan"), float("nan"), float("nan")
+    frames = [pd.read_parquet(p, columns=["frame_id"])["frame_id"].nunique() for p in shards]
+    times = [p.stat().st_mtime for p in shards]
+
+    def rate(a: int, b: int) -> float:  # frames of shards a+1..b over the time from shard a to shard b
+        span = times[b] - times[a]
+        return sum(frames[a + 1 : b + 1]) / span if b > a and span > 0 else float("nan")
+
+    jobs = max(1, jobs)
+    return rate(jobs - 1, len(shards) - jobs), rate(0, len(shards) - 1), times[0]
 
 
 def warm_cache(manifest: str, pipeline: str, overrides: list[str], cache: str) -> float:
@@ -221,7 +234,7 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
         )
     wall = time.perf_counter() - t0
     poses = pd.read_parquet(run_dir / "poses.parquet")
-    steady, first_shard = shard_throughput(run_dir)
+    steady, first_to_last, first_shard = shard_throughput(run_dir, jobs)
     est_start = timer.starts["estimate"][0]
     return {
         "jobs": jobs,
@@ -230,6 +243,7 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
         "rss": rss,
         "poses": poses,
         "steady_fps": steady,
+        "first_to_last_fps": first_to_last,
         "first_shard_s": first_shard - est_start,
         "run_dir": run_dir,
     }
@@ -423,24 +437,47 @@ def main() -> int:
     fps1, fps2 = n_frames / est_wall1, n_frames / est_wall2
     cores1, cores2 = (r["rss"].cpu_seconds() / r["wall"] for r in (r1, r2))
     s1, s2 = r1["steady_fps"], r2["steady_fps"]
+    t1, t2 = r1["first_to_last_fps"], r2["first_to_last_fps"]
     print("\n## Throughput (estimation stage)")
     print(
         table(
             [
-                ["--jobs 1", f"{est_wall1:.1f}", f"{fps1:.2f}", f"{s1:.2f}", f"{r1['wall']:.1f}", f"{cores1:.2f}"],
-                ["--jobs 2", f"{est_wall2:.1f}", f"{fps2:.2f}", f"{s2:.2f}", f"{r2['wall']:.1f}", f"{cores2:.2f}"],
-                ["jobs 2 / jobs 1", "", f"{fps2 / fps1:.2f}x", f"{s2 / s1:.2f}x", "", ""],
-                ["floor (1 process)", "", f"{1 / f_mean:.2f}", "", "", f"{floor_cores:.2f}"],
+                [
+                    "--jobs 1",
+                    f"{est_wall1:.1f}",
+                    f"{fps1:.2f}",
+                    f"{t1:.2f}",
+                    f"{s1:.2f}",
+                    f"{r1['wall']:.1f}",
+                    f"{cores1:.2f}",
+                ],
+                [
+                    "--jobs 2",
+                    f"{est_wall2:.1f}",
+                    f"{fps2:.2f}",
+                    f"{t2:.2f}",
+                    f"{s2:.2f}",
+                    f"{r2['wall']:.1f}",
+                    f"{cores2:.2f}",
+                ],
+                ["jobs 2 / jobs 1", "", f"{fps2 / fps1:.2f}x", f"{t2 / t1:.2f}x", f"{s2 / s1:.2f}x", "", ""],
+                ["floor (1 process)", "", f"{1 / f_mean:.2f}", "", "", "", f"{floor_cores:.2f}"],
             ],
             [
                 "",
                 "estimate wall s",
                 "frames/s (wall)",
-                "frames/s (steady, shard mtimes)",
+                "frames/s (first to last shard)",
+                "frames/s (steady: every worker busy)",
                 "run.main wall s",
                 "CPU cores busy (CPU s / wall s)",
             ],
         )
+    )
+    print(
+        f"shards: jobs 1 {len(list((r1['run_dir'] / 'shards').glob('shard-*.parquet')))}, jobs 2 "
+        f"{len(list((r2['run_dir'] / 'shards').glob('shard-*.parquet')))} (tasks of up to track.chunk_frames frames); "
+        "'first to last' includes the tail in which a worker has no task left"
     )
     s1c = pinned["steady_fps"]
     print(
