@@ -249,6 +249,33 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
     }
 
 
+def own_costs(poses: pd.DataFrame, floor_s: float) -> str:
+    """Each object's own time a pair (its stages, without the frame's shared decode and SIFT), split by how
+    many target objects its frames hold: what the fit above mixes when the frames with more objects are
+    also harder for the first one (occlusion, lost tracks)."""
+    p = poses.copy()
+    p["n_obj"] = p.groupby("frame_id")["obj_name"].transform("size")
+    p["own_s"] = p["time_total_s"] - p.get("time_decode_s", 0.0) - p.get("time_sift_s", 0.0)
+    rows = []
+    for (name, n), g in p.groupby(["obj_name", "n_obj"]):
+        fresh = g[~g["tracked"]] if "tracked" in g else g
+        rows.append(
+            [
+                name,
+                int(n),
+                len(g),
+                len(fresh),
+                f"{fresh['own_s'].sum():.1f}",
+                ms(g["own_s"].mean()),
+                f"{g['own_s'].mean() / floor_s:.2f}x",
+            ]
+        )
+    head = ["object", "objects in frame", "pairs", "estimated afresh", "afresh total s", "own ms / pair", "/ floor"]
+    return "\nown time per (frame, object), --jobs 1 (stages of the pair, shared decode and SIFT excluded):\n" + table(
+        rows, head
+    )
+
+
 def accuracy(run_dir: Path, out: Path) -> dict | None:
     """ADD-S / ADD figures of a run (``make_report.compare``), None without ground truth."""
     try:
@@ -479,6 +506,11 @@ def main() -> int:
         f"{len(list((r2['run_dir'] / 'shards').glob('shard-*.parquet')))} (tasks of up to track.chunk_frames frames); "
         "'first to last' includes the tail in which a worker has no task left"
     )
+    per_pair = [1000 * r["poses"]["time_total_s"].mean() for r in (r1, r2, pinned)]
+    print(
+        "compute per (frame, object) inside estimate_frame (poses time_total_s): jobs 1 {:.1f} ms, jobs 2 {:.1f} ms "
+        "(each worker), jobs 1 pinned {:.1f} ms".format(*per_pair)
+    )
     s1c = pinned["steady_fps"]
     print(
         f"--jobs 1 pinned to one core: {pinned['steady_fps']:.2f} frames/s steady -> --jobs 2 on two cores is "
@@ -521,6 +553,7 @@ def main() -> int:
         f"fit: end-to-end - floor = {ms(c)} ms + {ms(b)} ms x objects  ->  one object {ratio1:.2f}x the floor, "
         f"+{extra:.2f}x floor per further object"
     )
+    print(own_costs(r1["poses"], f_mean))
 
     # memory
     rss_rows = [
