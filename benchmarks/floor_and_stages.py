@@ -14,9 +14,11 @@ On the frames the pipeline estimates (those with at least one target object):
    poses.mcap) while a thread samples RSS and CPU time of the process and its workers; with ``--jobs 1``
    estimation runs in that process, so every ``PoseEstimator.estimate_frame`` call is timed too (per-frame
    wall, including work that no stage timer covers);
-4. prints the stage table, frames/s (wall, and steady state from shard completion times), the ratio to
-   the floor (one object, and each further object, from a least-squares fit of per-frame overhead vs
-   number of target objects), peak RSS per worker, accuracy, and PASS/MISS per target.
+4. prints the stage table, frames/s (wall; from the first to the last shard; and steady: while every
+   worker has a task, see :func:`shard_throughput`), compute per pair in each run, the ratio to the floor
+   (one object, and each further object, from a least-squares fit of per-frame overhead vs number of
+   target objects, with each object's own time per pair beside it), peak RSS per worker, accuracy, and
+   PASS/MISS per target.
 
 Any manifest works, e.g. the scale log of ``scale.py --keep DIR`` (``--manifest DIR/scale.yaml --limit 200``)
 for a longer one-object-per-frame run.
