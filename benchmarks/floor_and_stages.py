@@ -237,6 +237,7 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
     wall = time.perf_counter() - t0
     poses = pd.read_parquet(run_dir / "poses.parquet")
     steady, first_to_last, first_shard = shard_throughput(run_dir, jobs)
+    shards = len(list((run_dir / "shards").glob("shard-*.parquet")))
     est_start = timer.starts["estimate"][0]
     return {
         "jobs": jobs,
@@ -246,6 +247,7 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
         "poses": poses,
         "steady_fps": steady,
         "first_to_last_fps": first_to_last,
+        "shards": shards,
         "first_shard_s": first_shard - est_start,
         "run_dir": run_dir,
     }
@@ -471,24 +473,13 @@ def main() -> int:
     print(
         table(
             [
-                [
-                    "--jobs 1",
-                    f"{est_wall1:.1f}",
-                    f"{fps1:.2f}",
-                    f"{t1:.2f}",
-                    f"{s1:.2f}",
-                    f"{r1['wall']:.1f}",
-                    f"{cores1:.2f}",
-                ],
-                [
-                    "--jobs 2",
-                    f"{est_wall2:.1f}",
-                    f"{fps2:.2f}",
-                    f"{t2:.2f}",
-                    f"{s2:.2f}",
-                    f"{r2['wall']:.1f}",
-                    f"{cores2:.2f}",
-                ],
+                *(
+                    [label, f"{w:.1f}", f"{f:.2f}", f"{t:.2f}", f"{st:.2f}", f"{r['wall']:.1f}", f"{c:.2f}"]
+                    for label, r, w, f, t, st, c in (
+                        ("--jobs 1", r1, est_wall1, fps1, t1, s1, cores1),
+                        ("--jobs 2", r2, est_wall2, fps2, t2, s2, cores2),
+                    )
+                ),
                 ["jobs 2 / jobs 1", "", f"{fps2 / fps1:.2f}x", f"{t2 / t1:.2f}x", f"{s2 / s1:.2f}x", "", ""],
                 ["floor (1 process)", "", f"{1 / f_mean:.2f}", "", "", "", f"{floor_cores:.2f}"],
             ],
@@ -504,8 +495,7 @@ def main() -> int:
         )
     )
     print(
-        f"shards: jobs 1 {len(list((r1['run_dir'] / 'shards').glob('shard-*.parquet')))}, jobs 2 "
-        f"{len(list((r2['run_dir'] / 'shards').glob('shard-*.parquet')))} (tasks of up to track.chunk_frames frames); "
+        f"shards: jobs 1 {r1['shards']}, jobs 2 {r2['shards']} (tasks of up to track.chunk_frames frames); "
         "'first to last' includes the tail in which a worker has no task left"
     )
     per_pair = [1000 * r["poses"]["time_total_s"].mean() for r in (r1, r2, pinned)]
