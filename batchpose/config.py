@@ -247,6 +247,13 @@ class TrackConfig:
     flow errors do not add up over a track."""
     anchor_px: float = 2.0
     """Use the keyframe flow where it lands within this many pixels of the frame-to-frame flow."""
+    occlusion_margin_px: int = 10
+    """When two tracked objects overlap in the image, drop each one's points that lie within this many
+    pixels of the other's image region (its convex hull projected at its last pose) and are farther from the
+    camera than the other's nearest point (-1: keep them). Lucas-Kanade follows texture, so a point that an
+    object moving in front covers is dragged along with it, and with it the pose. The margin covers a
+    frame's motion and the flow window. Dropped points count as never seeded, so hiding part of an object
+    does not by itself end its track."""
     render_every: int = 0
     """Every this many tracked frames, pull the points back onto the mesh: find each point's patch of the
     mesh rendered at the tracked pose in the frame (NCC within ``render_search_px``) and solve again
@@ -271,8 +278,9 @@ class TrackConfig:
     """Lucas-Kanade pyramid levels above the full image."""
     lost_full_every: int = 4
     """While an object stays lost (its estimates start no track) in consecutive frames, only every this
-    many-th of them gets the full estimate; the others get a quick one: the whole-frame pass and one
-    refinement of its pose, as for a ``strong_inliers`` pass (~3x cheaper). An occluded or absent object
+    many-th of them gets the full estimate; the others get a quick one: the whole-frame pass against the
+    ``match.first_views`` most-voted views only, and one refinement of its pose (~3x cheaper). An object
+    counts as lost until a track of it lives this many frames. An occluded or absent object
     then costs a third of the time; one that reappears is found up to this many frames later where only
     the fine pass or locator finds it. 1: always the full estimate."""
     chunk_frames: int = 64
@@ -540,6 +548,7 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("window_px", tc.window_px >= 5, "be >= 5"),
         ("min_ncc", -1 <= tc.min_ncc <= 1, "be in [-1, 1]"),
         ("ncc_radius_px", tc.ncc_radius_px >= 1, "be >= 1"),
+        ("occlusion_margin_px", tc.occlusion_margin_px >= -1, "be >= -1"),
         ("render_every", tc.render_every >= 0, "be >= 0"),
         ("refresh_every", tc.refresh_every >= 0, "be >= 0"),
         ("reseed_fraction", 0 <= tc.reseed_fraction <= 1, "be in [0, 1]"),

@@ -34,7 +34,7 @@ from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.search import Silhouettes, search, texture_match
 from batchpose.templates import TemplateLibrary
-from batchpose.track import Track, anchor_to_render, follow_all, seed
+from batchpose.track import Track, anchor_to_render, follow_all, occluders, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
@@ -139,6 +139,7 @@ class PoseEstimator:
         self._placed: dict[str, tuple[tuple, np.ndarray]] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
+        self._hulls: dict[str, np.ndarray] = {}
         self._prev: dict | None = None
 
     # -- per-object caches -------------------------------------------------------------------------
@@ -181,8 +182,9 @@ class PoseEstimator:
             camera: calibration of this image.
             obj_names: objects to look for (each must have a library).
             gt: ground-truth poses, used only by the ``match.roi: gt_box`` oracle and ``method: tp_ub``.
-            quick: objects estimated as if the whole-frame pass were strong (no fine pass or locator, one
-                refinement hypothesis): tracking's cheaper retry for an object that stays lost.
+            quick: objects estimated as if the whole-frame pass were strong (its first stage only, no fine
+                pass or locator, one refinement hypothesis): tracking's cheaper retry for an object that stays
+                lost.
 
         Raises:
             ImageError / CameraError: the image or calibration is unusable.
@@ -253,7 +255,7 @@ class PoseEstimator:
         timings: dict[str, float] = {}
         rec = PoseRecord(frame_id, name, "ok", obj_id=self.obj_ids.get(name, 0), timings=timings)
         roi = self._roi_mask(xy_q, camera, gt_pose, name)
-        res, corr = self._coarse(name, xy_q, desc_q, query_index, roi, camera, timings)
+        res, corr = self._coarse(name, xy_q, desc_q, query_index, roi, camera, timings, quick)
         passes = [(res, corr, xy_q, desc_q)]
         strong = quick or self._strong(name, res, camera)
         if conf.fine.enabled and not strong:
@@ -338,9 +340,9 @@ class PoseEstimator:
             return None
         return vote_views(desc_q, self._library_index(name), lib, n_views, self.conf.match, roi)
 
-    def _coarse(self, name, xy_q, desc_q, query_index, roi, camera: Camera, timings: dict[str, float]):
+    def _coarse(self, name, xy_q, desc_q, query_index, roi, camera: Camera, timings: dict[str, float], quick=False):
         """The whole-frame pass: (result, pairs). With ``match.first_views``, the most-voted views are
-        matched first and the rest only when they give no strong pose."""
+        matched first and the rest only when they give no strong pose (and the estimate is not ``quick``)."""
         conf, lib = self.conf, self.libraries[name]
         first, n_views = conf.match.first_views, conf.match.prefilter_views
         t0 = time.perf_counter()
@@ -354,7 +356,7 @@ class PoseEstimator:
         corr = top_k_pairs(cand, lib, xy_q, conf.match)
         timings["match"] = time.perf_counter() - t0
         res = self._solve(name, corr, camera, timings)
-        if self._strong(name, res, camera):
+        if quick or self._strong(name, res, camera):
             return res, corr
         t0 = time.perf_counter()
         more = template_to_query_candidates(query_index, lib, conf.match, roi, views[first:])
@@ -634,7 +636,10 @@ class PoseEstimator:
         out: dict[str, PoseRecord] = {}
         due = [n for n in obj_names if n in tracks and not (tc.redetect_every and tracks[n].age >= tc.redetect_every)]
         t0 = time.perf_counter()
-        moved_all = follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc) if due else []
+        hidden = self._hidden([tracks[n] for n in due], due, camera)
+        moved_all = (
+            follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc, hidden) if due else []
+        )
         followed = dict(zip(due, moved_all, strict=True))
         t_flow = (time.perf_counter() - t0) / max(len(due), 1)  # one flow call for all: each pays its share
         for name in due:
@@ -658,6 +663,8 @@ class PoseEstimator:
                     log.debug("%s: track of %s no longer matches the mesh, estimating afresh", frame.frame_id, name)
                     continue
             self._tracks[name] = moved = res.track
+            if name in lost and moved.age < tc.lost_full_every:
+                self._lost[name] = lost[name] + 1  # a young track: still counted as lost (see below)
             out[name] = PoseRecord(
                 frame.frame_id,
                 name,
@@ -674,7 +681,9 @@ class PoseEstimator:
             )
         rest = [n for n in obj_names if n not in out]
         # An object still lost since the previous frame gets the full estimate only every
-        # ``lost_full_every``-th frame, a quick one in between.
+        # ``lost_full_every``-th frame, a quick one in between. It counts as lost until a track of it lives
+        # that many frames: a mostly hidden object's estimates start tracks that die a frame later, and each
+        # would otherwise make the next estimate a full one.
         quick = frozenset(n for n in rest if lost.get(n, 0) % tc.lost_full_every)
         for rec in self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick) if rest else []:
             out[rec.obj_name] = rec
@@ -684,8 +693,7 @@ class PoseEstimator:
                 rec.timings["seed"] = time.perf_counter() - t0
                 if tr is not None:
                     self._tracks[rec.obj_name] = tr
-            if rec.obj_name not in self._tracks:
-                self._lost[rec.obj_name] = lost.get(rec.obj_name, 0) + 1
+            self._lost[rec.obj_name] = lost.get(rec.obj_name, 0) + 1
         self._prev = {
             "gray": gray,
             "scene_id": frame.scene_id,
@@ -695,6 +703,18 @@ class PoseEstimator:
             "dist": camera.dist,
         }
         return [out[n] for n in obj_names]
+
+    def _hidden(self, tracks: list[Track], names: list[str], camera: Camera) -> list[list] | None:
+        """``track.occlusion_margin_px``: what may hide each tracked object, at the tracks' last poses
+        (:func:`batchpose.track.occluders`); None when off or with fewer than two tracks."""
+        margin = self.conf.track.occlusion_margin_px
+        if margin < 0 or len(tracks) < 2 or any(n not in self.models for n in names):
+            return None
+        if any(n not in self._hulls for n in names):
+            self._hulls.update({n: np.asarray(self.models[n].mesh.convex_hull.vertices) for n in names})
+        hulls = [self._hulls[n] for n in names]
+        poses = [t.cam_from_model for t in tracks]
+        return occluders(hulls, poses, camera.K, camera.dist, camera.width, camera.height, margin)
 
     def _use_depth(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``depth.enabled``: check each found pose against the frame's depth image and align it to the depth

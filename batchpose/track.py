@@ -171,6 +171,59 @@ def follow(
     return follow_all(prev_gray, gray, [track], K, dist, conf)[0]
 
 
+@dataclass
+class Occluder:
+    """Something in front of part of a tracked object: its image region and its nearest depth."""
+
+    mask: np.ndarray
+    """(H, W) bool: where it is in the image (grown by a margin)."""
+    near_m: float
+    """Its nearest point's depth; it hides only the object's points farther than this."""
+
+
+def occluders(hulls: list[np.ndarray], poses: list[np.ndarray], K, dist, width: int, height: int, margin_px: int):
+    """Which of several objects may hide which: per object, the others whose image regions (the projected
+    convex hull, grown by ``margin_px``) overlap its own, as :class:`Occluder` (an empty list: nothing).
+
+    Args:
+        hulls: each object's convex-hull vertices (M, 3), model frame. poses: each one's cam_from_model.
+    """
+    regions = []
+    for X, T in zip(hulls, poses, strict=True):
+        cam = X @ T[:3, :3].T + T[:3, 3]
+        if np.any(cam[:, 2] <= 1e-3):
+            regions.append(None)  # reaches behind the camera: not projected, hides nothing
+            continue
+        uv, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)
+        uv = uv.reshape(-1, 2)
+        regions.append((uv.min(axis=0) - margin_px, uv.max(axis=0) + margin_px, uv, float(cam[:, 2].min())))
+    out: list[list[Occluder]] = [[] for _ in hulls]
+    k = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
+    for j, b in enumerate(regions):
+        if b is None:
+            continue
+        mask = None
+        for i, a in enumerate(regions):
+            if i == j or a is None or not (np.all(a[0] <= b[1]) and np.all(b[0] <= a[1])):
+                continue
+            if mask is None:
+                m = np.zeros((height, width), np.uint8)
+                cv2.fillConvexPoly(m, np.rint(cv2.convexHull(b[2].astype(np.float32))).astype(np.int32), 1)
+                mask = (cv2.dilate(m, k) if margin_px > 0 else m).astype(bool)
+            out[i].append(Occluder(mask, b[3]))
+    return out
+
+
+def _inside(mask: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Whether each point (N, 2) falls on a set pixel of ``mask`` (points off the image do not)."""
+    h, w = mask.shape
+    ij = np.rint(xy).astype(np.int64)
+    on = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    out = np.zeros(len(xy), bool)
+    out[on] = mask[ij[on, 1], ij[on, 0]]
+    return out
+
+
 def follow_all(
     prev_gray: np.ndarray,
     gray: np.ndarray,
@@ -178,12 +231,18 @@ def follow_all(
     K: np.ndarray,
     dist: np.ndarray,
     conf: TrackConfig,
+    hidden: list[list[Occluder]] | None = None,
 ) -> list[TrackResult | None]:
     """:func:`follow` for several tracks in one frame (None for each track that is lost).
 
     Lucas-Kanade tracks every point on its own, so all tracks' points share one forward and one backward
     flow call (and the anchor flow one call per keyframe image): each call builds both images' pyramids,
     which costs as much as flowing a few hundred points.
+
+    Args:
+        hidden: per track, what may be in front of the object (:func:`occluders`): the track's points
+            inside an occluder's region, before or after the flow, and farther than its nearest point are
+            dropped and count as never seeded.
     """
     lk = _lk_params(conf)
     out: list[TrackResult | None] = [None] * len(tracks)
@@ -199,9 +258,17 @@ def follow_all(
     moved = {}
     for i, p1_i, ok in zip(live, _split(p1.reshape(-1, 2), sizes), _split(ok_all, sizes), strict=True):
         track = tracks[i]
-        if ok.sum() >= max(conf.min_points, conf.min_fraction * track.n_seeded):
+        n_seeded = track.n_seeded
+        if hidden is not None and hidden[i]:
+            z = track.X @ track.cam_from_model[2, :3] + track.cam_from_model[2, 3]
+            covered = np.zeros(len(z), bool)
+            for occ in hidden[i]:
+                covered |= (_inside(occ.mask, track.xy) | _inside(occ.mask, p1_i)) & (z > occ.near_m)
+            ok = ok & ~covered
+            n_seeded = max(n_seeded - int(covered.sum()), 0)
+        if ok.sum() >= max(conf.min_points, conf.min_fraction * n_seeded):
             key_xy = track.key_xy[ok] if track.key_xy is not None else None
-            moved[i] = (p1_i[ok].astype(np.float64), track.X[ok], key_xy)
+            moved[i] = (p1_i[ok].astype(np.float64), track.X[ok], key_xy, n_seeded)
     if conf.anchor:
         # Flow straight from the keyframe, started where frame-to-frame flow ended: frame-to-frame errors
         # add up over a track, errors against the keyframe do not. One call per keyframe image.
@@ -225,17 +292,17 @@ def follow_all(
                 xy = moved[i][0]
                 agree = (st_i == 1) & (np.linalg.norm(pk_i - xy, axis=1) <= conf.anchor_px)
                 xy[agree] = pk_i[agree]
-    for i, (xy, X, key_xy) in moved.items():
-        out[i] = _solve_track(tracks[i], xy, X, key_xy, K, dist, conf)
+    for i, (xy, X, key_xy, n_seeded) in moved.items():
+        out[i] = _solve_track(tracks[i], xy, X, key_xy, K, dist, conf, n_seeded)
     return out
 
 
-def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig) -> TrackResult | None:
+def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seeded: int | None = None):
     """LM from the previous pose on the flowed points, trimming the points that do not fit (occluders, flow
-    slips); the track moved on, or None when too few points fit."""
-    solved = _solve_lm(
-        X, xy, track.cam_from_model, K, dist, conf, max(conf.min_points, conf.min_fraction * track.n_seeded)
-    )
+    slips); the track moved on (a :class:`TrackResult`), or None when too few points fit. ``n_seeded``: the
+    track's seeded points less those hidden since (default: ``track.n_seeded``)."""
+    n_seeded = track.n_seeded if n_seeded is None else n_seeded
+    solved = _solve_lm(X, xy, track.cam_from_model, K, dist, conf, max(conf.min_points, conf.min_fraction * n_seeded))
     if solved is None:
         return None
     T, keep, med = solved
@@ -245,7 +312,7 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig) -> Tra
         snapped.reshape(-1, 2).astype(np.float32),
         X[keep],
         T,
-        track.n_seeded,
+        n_seeded,
         track.confidence,
         track.age + 1,
         track.key_gray,

@@ -234,6 +234,8 @@ def test_track_config_is_checked():
         load_estimator_config({"track": {"pointz": 2}})
     with pytest.raises(ConfigError, match="track.lost_full_every must be >= 1"):
         load_estimator_config({"track": {"lost_full_every": 0}})
+    with pytest.raises(ConfigError, match="track.occlusion_margin_px must be >= -1"):
+        load_estimator_config({"track": {"occlusion_margin_px": -2}})
     with pytest.raises(ConfigError, match="strong_inliers must be >= 0"):
         load_estimator_config({"strong_inliers": -1})
 
@@ -342,3 +344,77 @@ def test_an_object_that_stays_lost_gets_quick_estimates_between_full_ones(
     assert [r.ok for r in recs[6:]] == [True] * 3 and [r.tracked for r in recs[6:]] == [False, True, True]
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     assert add_error(recs[6].cam_from_model, clip[0][1], pts) < 0.02 * cracker_model.diameter_m
+
+
+def test_points_hidden_by_a_tracked_object_in_front_are_dropped(cracker_model):
+    """The gelatin box slides in front of the (almost still) cracker box until half of it is hidden. With the
+    gelatin box as an occluder (``track.occluders`` at its previous pose, as the estimator passes it), the
+    cracker's points it covers are dropped and count as never seeded: the track lives through all 15
+    frames on the true pose and keeps no point on the gelatin box. Without, those points are dragged along
+    or fail and the track ends."""
+    from batchpose.mesh import load_mesh
+    from batchpose.track import Track, follow_all, occluders, seed
+    from tests.conftest import GELATIN
+
+    gelatin = load_mesh(GELATIN)
+    renderer, rng = get_renderer(), np.random.default_rng(11)
+    bg = textured_background(rng)
+    grays, boxes, gels, gel_depths = [], [], [], []
+    for i in range(16):
+        T = clip_pose(0, cracker_model.center_m)
+        T[0, 3] += 0.0005 * i
+        G = np.eye(4)
+        G[:3, :3] = cv2.Rodrigues(np.array([0.3, 0.5, 0.2]))[0]
+        G[:3, 3] = [-0.09 + 0.005 * i, 0.0, 0.45]  # in front of the box, ~9 px a frame to the right
+        rgb, depth = renderer.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
+        rgb_g, depth_g = renderer.render(gelatin.content_hash, gelatin.mesh, G, K_SYN, 640, 480, "lit")
+        img = bg.copy()
+        img[depth > 0] = rgb[depth > 0]
+        img[depth_g > 0] = rgb_g[depth_g > 0]
+        img = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        grays.append(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
+        boxes.append(T)
+        gels.append(G)
+        gel_depths.append(depth_g)
+    assert ((gel_depths[15] > 0) & (depth > 0)).sum() > 0.4 * (depth > 0).sum()  # the last frame hides ~half
+
+    conf = TrackConfig()
+    rgb, depth = renderer.render(cracker_model.content_hash, cracker_model.mesh, boxes[0], K_SYN, 640, 480)
+    xy, X = seed(grays[0], boxes[0], cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), depth, K_SYN, np.zeros(0), conf)
+    hulls = [np.asarray(m.mesh.convex_hull.vertices) for m in (cracker_model, gelatin)]
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    for use in (True, False):
+        track = Track(xy, X, boxes[0], len(xy), 0.9, key_gray=grays[0], key_xy=xy.copy())
+        errors = []
+        for i in range(1, 16):
+            hidden = None
+            if use:
+                poses = [track.cam_from_model, gels[i - 1]]
+                hidden = occluders(hulls, poses, K_SYN, np.zeros(0), 640, 480, conf.occlusion_margin_px)[:1]
+            res = follow_all(grays[i - 1], grays[i], [track], K_SYN, np.zeros(0), conf, hidden)[0]
+            if res is None:
+                break
+            track = res.track
+            errors.append(add_error(track.cam_from_model, boxes[i], pts))
+        print(f"occluders {use}: {len(errors)} frames tracked, {len(track.xy)} points of {track.n_seeded} seeded")
+        if not use:
+            assert len(errors) < 15  # the track ends
+            continue
+        assert len(errors) == 15 and max(errors) < 0.005 * cracker_model.diameter_m, errors
+        assert track.n_seeded < len(xy) and len(track.xy) >= conf.min_fraction * track.n_seeded
+        on_gelatin = gel_depths[15][np.rint(track.xy[:, 1]).astype(int), np.rint(track.xy[:, 0]).astype(int)] > 0
+        assert not on_gelatin.any()
+
+
+def test_an_object_whose_track_dies_young_still_counts_as_lost(cracker_model, cracker_library, clip):
+    """The box is found and tracked in one frame, then gone: its track dies a frame old, and the estimates
+    that follow are quick ones with the full one every 4th frame, counted from the frame it was last
+    estimated afresh (a mostly hidden object's short tracks would otherwise make every estimate a full one)."""
+    bg = textured_background(np.random.default_rng(5))
+    frames = [frame_of(clip[0][0], 0), frame_of(clip[1][0], 1)] + [frame_of(bg, i) for i in range(2, 8)]
+    est = make_estimator(cracker_model, cracker_library)
+    recs = run_clip(est, frames, cracker_model.name)
+    assert [r.ok for r in recs[:2]] == [True, True] and [r.tracked for r in recs[:2]] == [False, True]
+    assert not any(r.ok for r in recs[2:])
+    # lost count 1 at the seeding, 2 after the tracked frame: full estimates at counts 4 and 8
+    assert [("fine" in r.timings) for r in recs[2:]] == [False, False, True, False, False, False]
