@@ -71,6 +71,11 @@ class FeatureConfig:
     contrast_threshold: float = 0.02
     """SIFT's contrast threshold: half OpenCV's 0.04, for more keypoints on dim, blurred or small objects
     (the ``paper`` and ``fast`` pipelines keep 0.04; reports/ACCURACY.md has both)."""
+    retry_contrast_threshold: float = 0.0
+    """When a full estimate finds no pose (not found, or below ``min_confidence``), detect the frame's SIFT
+    keypoints again with this lower contrast threshold and estimate that object once more, keeping the new
+    pose if it is ok (0: no retry). Costs a second detection in frames where an object is not found;
+    objects found with the default keypoints are never affected."""
     edge_threshold: float = 10.0
     sigma: float = 1.6
     root_sift: bool = True
@@ -538,6 +543,12 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: fine.locate_ratio must be in (0, 1] and fine.locate_angle_deg in [0, 180]")
     if conf.fine.locate_peaks < 1 or conf.fine.locate_votes < 1:
         raise ConfigError(f"{where}: fine.locate_peaks and fine.locate_votes must be >= 1")
+    fc = conf.features
+    if not 0 <= fc.retry_contrast_threshold < fc.contrast_threshold:
+        raise ConfigError(
+            f"{where}: features.retry_contrast_threshold must be 0 (off) or below features.contrast_threshold "
+            f"({fc.contrast_threshold:g}), got {fc.retry_contrast_threshold:g}"
+        )
     tc = conf.track
     for key, ok, need in (
         ("max_gap_s", tc.max_gap_s > 0, "be positive"),

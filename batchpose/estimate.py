@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -126,6 +127,7 @@ class PoseEstimator:
         self.models = models or {}
         self.renderer = renderer
         self._sift = make_sift(conf.features)
+        self._sift_retry = None
         self._lib_index: dict[str, object] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flip_cache: dict[str, list[np.ndarray]] = {}
@@ -209,7 +211,38 @@ class PoseEstimator:
             )
             rec.timings["sift"] = t_sift
             records.append(rec)
+        if self.conf.features.retry_contrast_threshold > 0:
+            self._retry(records, gray, camera, gt_by_name, frame_id, quick)
         return records
+
+    def _retry(self, records: list[PoseRecord], gray, camera: Camera, gt_by_name: dict, frame_id: str, quick):
+        """``features.retry_contrast_threshold``: estimate each object a full estimate did not find once more
+        from keypoints detected at the lower contrast threshold; keep the new record when it is ok."""
+        todo = [i for i, r in enumerate(records) if r.status in NOT_FOUND and r.obj_name not in quick]
+        if not todo or self.conf.method == "tp_ub":
+            return
+        t0 = time.perf_counter()
+        if self._sift_retry is None:
+            fc = self.conf.features
+            self._sift_retry = make_sift(dataclasses.replace(fc, contrast_threshold=fc.retry_contrast_threshold))
+        keypoints = detect_shapes(gray, self.conf.features, sift=self._sift_retry)
+        index = None
+        if self.conf.match.direction == "template_to_query":
+            index = flann_index(keypoints[1], self.conf.match)
+        t_sift = (time.perf_counter() - t0) / len(todo)
+        for i in todo:
+            first = records[i]
+            rec = self._estimate_object(
+                first.obj_name, gray, keypoints, index, camera, gt_by_name.get(first.obj_name), frame_id
+            )
+            for k, v in first.timings.items():  # both attempts' time is the pair's
+                rec.timings[k] = rec.timings.get(k, 0.0) + v
+            rec.timings["sift"] = rec.timings.get("sift", 0.0) + t_sift
+            if rec.ok:
+                rec.reason = f"found with keypoints at contrast {self.conf.features.retry_contrast_threshold:g}"
+                records[i] = rec
+            else:
+                first.timings = rec.timings
 
     def _roi_mask(self, xy_q: np.ndarray, camera: Camera, cam_from_model: np.ndarray | None, name: str):
         if self.conf.match.roi == "none":

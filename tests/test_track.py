@@ -236,6 +236,8 @@ def test_track_config_is_checked():
         load_estimator_config({"track": {"lost_full_every": 0}})
     with pytest.raises(ConfigError, match="track.occlusion_margin_px must be >= -1"):
         load_estimator_config({"track": {"occlusion_margin_px": -2}})
+    with pytest.raises(ConfigError, match="retry_contrast_threshold must be 0 \\(off\\) or below"):
+        load_estimator_config({"features": {"retry_contrast_threshold": 0.03}})
     with pytest.raises(ConfigError, match="strong_inliers must be >= 0"):
         load_estimator_config({"strong_inliers": -1})
 
