@@ -216,9 +216,15 @@ class PoseEstimator:
         return records
 
     def _retry(self, records: list[PoseRecord], gray, camera: Camera, gt_by_name: dict, frame_id: str, quick):
-        """``features.retry_contrast_threshold``: estimate each object a full estimate did not find once more
-        from keypoints detected at the lower contrast threshold; keep the new record when it is ok."""
-        todo = [i for i, r in enumerate(records) if r.status in NOT_FOUND and r.obj_name not in quick]
+        """``features.retry_contrast_threshold``: estimate each object a full estimate did not find, or found
+        only weakly (confidence below ``verify_below``), once more from keypoints detected at the lower
+        contrast threshold; keep the new record when it is ok and more confident."""
+        weak = self.conf.verify_below
+        todo = [
+            i
+            for i, r in enumerate(records)
+            if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in quick
+        ]
         if not todo or self.conf.method == "tp_ub":
             return
         t0 = time.perf_counter()
@@ -238,7 +244,7 @@ class PoseEstimator:
             for k, v in first.timings.items():  # both attempts' time is the pair's
                 rec.timings[k] = rec.timings.get(k, 0.0) + v
             rec.timings["sift"] = rec.timings.get("sift", 0.0) + t_sift
-            if rec.ok:
+            if rec.ok and (not first.ok or rec.confidence > first.confidence):
                 rec.reason = f"found with keypoints at contrast {self.conf.features.retry_contrast_threshold:g}"
                 records[i] = rec
             else:

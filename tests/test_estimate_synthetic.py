@@ -83,8 +83,8 @@ def test_round_trip_30_poses(cracker_model, cracker_library):
 
 def test_a_dim_object_is_found_by_the_retry_at_a_lower_contrast(cracker_model, cracker_library):
     """The box at a tenth of its contrast: the default keypoints find it in at most one of six frames; the
-    retry at ``features.retry_contrast_threshold`` 0.01 finds at least four more, within 0.05 d; a pose the
-    first estimate found stays exactly as it was."""
+    retry at ``features.retry_contrast_threshold`` 0.01 finds at least four more, within 0.05 d; a confident
+    pose the first estimate found stays exactly as it was, a weak one is replaced only by a stronger one."""
     import dataclasses
 
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
@@ -110,8 +110,11 @@ def test_a_dim_object_is_found_by_the_retry_at_a_lower_contrast(cracker_model, c
         a = plain.estimate_image(img, cam, [cracker_model.name])[0]
         b = retried.estimate_image(img, cam, [cracker_model.name])[0]
         if a.ok:
-            np.testing.assert_array_equal(a.cam_from_model, b.cam_from_model)
             found["plain"] += add_error(a.cam_from_model, T, pts) < 0.05 * cracker_model.diameter_m
+            if a.confidence >= retried.conf.verify_below:
+                np.testing.assert_array_equal(a.cam_from_model, b.cam_from_model)
+            else:  # a weak pose is replaced only by a more confident one
+                assert b.ok and b.confidence >= a.confidence
         else:
             assert b.ok == ("contrast 0.01" in b.reason)
             found["retry"] += b.ok and add_error(b.cam_from_model, T, pts) < 0.05 * cracker_model.diameter_m
