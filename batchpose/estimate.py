@@ -225,7 +225,7 @@ class PoseEstimator:
             for i, r in enumerate(records)
             if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in quick
         ]
-        if not todo or self.conf.method == "tp_ub":
+        if not todo:
             return
         t0 = time.perf_counter()
         if self._sift_retry is None:
@@ -749,8 +749,9 @@ class PoseEstimator:
         margin = self.conf.track.occlusion_margin_px
         if margin < 0 or len(tracks) < 2 or any(n not in self.models for n in names):
             return None
-        if any(n not in self._hulls for n in names):
-            self._hulls.update({n: np.asarray(self.models[n].mesh.convex_hull.vertices) for n in names})
+        for n in names:
+            if n not in self._hulls:
+                self._hulls[n] = np.asarray(self.models[n].mesh.convex_hull.vertices)
         hulls = [self._hulls[n] for n in names]
         poses = [t.cam_from_model for t in tracks]
         return occluders(hulls, poses, camera.K, camera.dist, camera.width, camera.height, margin)

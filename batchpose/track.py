@@ -297,11 +297,10 @@ def follow_all(
     return out
 
 
-def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seeded: int | None = None):
+def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seeded: int) -> TrackResult | None:
     """LM from the previous pose on the flowed points, trimming the points that do not fit (occluders, flow
-    slips); the track moved on (a :class:`TrackResult`), or None when too few points fit. ``n_seeded``: the
-    track's seeded points less those hidden since (default: ``track.n_seeded``)."""
-    n_seeded = track.n_seeded if n_seeded is None else n_seeded
+    slips); the track moved on, or None when too few points fit. ``n_seeded``: the track's seeded points
+    less those hidden since."""
     solved = _solve_lm(X, xy, track.cam_from_model, K, dist, conf, max(conf.min_points, conf.min_fraction * n_seeded))
     if solved is None:
         return None
