@@ -291,6 +291,17 @@ class TrackConfig:
     counts as lost until a track of it lives this many frames. An occluded or absent object
     then costs a third of the time; one that reappears is found up to this many frames later where only
     the fine pass or locator finds it. 1: always the full estimate."""
+    hidden_above: float = 0.6
+    """A lost object whose last confident pose is at least this fraction covered (its projected convex
+    hull) by tracked objects in front of it is estimated only every ``lost_full_every``-th frame (in full);
+    in the frames between, where it would get a quick estimate, its status is ``hidden``, naming what hides
+    it. It is estimated in every frame again as soon as less of it is covered. Estimates of a mostly hidden
+    object are slow (whole-frame SIFT and matching even for a quick one) and often wrong (1: never skip)."""
+    hidden_quick: bool = False
+    """Make those every-``lost_full_every``-th estimates of a mostly hidden object quick ones (see
+    ``lost_full_every``). Two-object benchmark log (reports/BENCHMARKS.md, session 14): the further object's
+    cost +0.45x -> +0.20x the floor, ADD < 0.1 d 97.1 -> 96.7 % (the fine pass finds more of a mostly hidden
+    object). On in the ``fast`` preset."""
     chunk_frames: int = 64
     """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on
     ``--jobs``; each task starts with a full estimate per object. Two-object benchmark log (800 frames,
@@ -570,6 +581,7 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("levels", tc.levels >= 0, "be >= 0"),
         ("chunk_frames", tc.chunk_frames >= 1, "be >= 1"),
         ("lost_full_every", tc.lost_full_every >= 1, "be >= 1"),
+        ("hidden_above", 0 < tc.hidden_above <= 1, "be in (0, 1]"),
     ):
         if not ok:
             raise ConfigError(f"{where}: track.{key} must {need}, got {getattr(tc, key)}")

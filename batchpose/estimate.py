@@ -35,7 +35,7 @@ from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.search import Silhouettes, search, texture_match
 from batchpose.templates import TemplateLibrary
-from batchpose.track import Track, anchor_to_render, follow_all, occluders, seed
+from batchpose.track import Track, anchor_to_render, covered, follow_all, occluders, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
@@ -141,6 +141,7 @@ class PoseEstimator:
         self._placed: dict[str, tuple[tuple, np.ndarray]] = {}
         self._tracks: dict[str, Track] = {}
         self._lost: dict[str, int] = {}
+        self._last: dict[str, np.ndarray] = {}  # each object's last confident pose in the current sequence
         self._hulls: dict[str, np.ndarray] = {}
         self._prev: dict | None = None
 
@@ -186,7 +187,7 @@ class PoseEstimator:
             gt: ground-truth poses, used only by the ``match.roi: gt_box`` oracle and ``method: tp_ub``.
             quick: objects estimated as if the whole-frame pass were strong (its first stage only, no fine
                 pass or locator, one refinement hypothesis): tracking's cheaper retry for an object that stays
-                lost.
+                lost, or mostly hidden.
 
         Raises:
             ImageError / CameraError: the image or calibration is unusable.
@@ -215,15 +216,16 @@ class PoseEstimator:
             self._retry(records, gray, camera, gt_by_name, frame_id, quick)
         return records
 
-    def _retry(self, records: list[PoseRecord], gray, camera: Camera, gt_by_name: dict, frame_id: str, quick):
+    def _retry(self, records: list[PoseRecord], gray, camera: Camera, gt_by_name: dict, frame_id: str, skip):
         """``features.retry_contrast_threshold``: estimate each object a full estimate did not find, or found
         only weakly (confidence below ``verify_below``), once more from keypoints detected at the lower
-        contrast threshold; keep the new record when it is ok and more confident."""
+        contrast threshold; keep the new record when it is ok and more confident. Not the objects in
+        ``skip``."""
         weak = self.conf.verify_below
         todo = [
             i
             for i, r in enumerate(records)
-            if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in quick
+            if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in skip
         ]
         if not todo:
             return
@@ -593,6 +595,7 @@ class PoseEstimator:
         """Forget every track: the next frame is estimated afresh (a worker does this at each task)."""
         self._tracks = {}
         self._lost = {}
+        self._last = {}
         self._prev = None
         self._found = {}
         self._placed = {}
@@ -632,19 +635,20 @@ class PoseEstimator:
     def _render_gray(self, name: str, T: np.ndarray, camera: Camera) -> np.ndarray:
         return to_gray(self._render(name, T, camera)[0])
 
-    def _seed(self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera) -> Track | None:
-        """A new track from a confident full estimate (None when the object shows too few corners)."""
+    def _seed(self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera, hidden=()) -> Track | None:
+        """A new track from a confident full estimate (None when the object shows too few corners); no
+        corners where ``hidden`` (:meth:`_hidden`) puts something in front of it."""
         model = self.models.get(name)
         if model is None:
             return None
         T = rec.cam_from_model
         rgb, depth = self._render(name, T, camera)
-        xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, self.conf.track)
+        xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, self.conf.track, hidden)
         if len(xy) < self.conf.track.min_points:
             return None
         return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy())
 
-    def _refresh(self, name: str, gray: np.ndarray, res, camera: Camera):
+    def _refresh(self, name: str, gray: np.ndarray, res, camera: Camera, hidden=()):
         """A new keyframe at the tracked pose, checked against the mesh: pull the points onto the mesh
         rendered there (:func:`batchpose.track.anchor_to_render`), then seed corners afresh at the pulled pose.
         None when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
@@ -653,7 +657,7 @@ class PoseEstimator:
         if anchored is None:
             return None
         rec = PoseRecord("", name, "ok", cam_from_model=anchored.track.cam_from_model, confidence=res.track.confidence)
-        fresh = self._seed(name, gray, rec, camera)
+        fresh = self._seed(name, gray, rec, camera, hidden)
         if fresh is None:
             return None
         anchored.track = fresh
@@ -671,17 +675,19 @@ class PoseEstimator:
         follows = self._follows(frame)
         tracks = self._tracks if follows else {}
         lost = self._lost if follows else {}
+        last = self._last if follows else {}
         self._tracks, self._lost, self._prev = {}, {}, None  # rebuilt below; stay empty if this frame fails
+        self._last = {}
         out: dict[str, PoseRecord] = {}
         due = [n for n in obj_names if n in tracks and not (tc.redetect_every and tracks[n].age >= tc.redetect_every)]
         t0 = time.perf_counter()
-        hidden = self._hidden([tracks[n] for n in due], due, camera)
+        hidden = self._hidden([tracks[n].cam_from_model for n in due], due, camera)
         moved_all = (
             follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc, hidden) if due else []
         )
         followed = dict(zip(due, moved_all, strict=True))
         t_flow = (time.perf_counter() - t0) / max(len(due), 1)  # one flow call for all: each pays its share
-        for name in due:
+        for k, name in enumerate(due):
             tr = tracks[name]
             t0 = time.perf_counter() - t_flow
             res = followed[name]
@@ -696,7 +702,7 @@ class PoseEstimator:
             old_age, thinning = res.track.age, len(res.track.xy) < tc.reseed_fraction * res.track.n_seeded
             if tc.refresh_every and (old_age >= tc.refresh_every or thinning):
                 t1 = time.perf_counter()
-                res = self._refresh(name, gray, res, camera)
+                res = self._refresh(name, gray, res, camera, hidden[k] if hidden else ())
                 t_refresh = time.perf_counter() - t1
                 if res is None:
                     log.debug("%s: track of %s no longer matches the mesh, estimating afresh", frame.frame_id, name)
@@ -724,15 +730,36 @@ class PoseEstimator:
         # that many frames: a mostly hidden object's estimates start tracks that die a frame later, and each
         # would otherwise make the next estimate a full one.
         quick = frozenset(n for n in rest if lost.get(n, 0) % tc.lost_full_every)
-        for rec in self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick) if rest else []:
+        skipped, hidden = self._hidden_lost(rest, quick, out, last, frame)
+        for rec in skipped:
             out[rec.obj_name] = rec
-            if rec.ok and rec.confidence >= tc.min_confidence:
-                t0 = time.perf_counter()
-                tr = self._seed(rec.obj_name, gray, rec, camera)
+        rest = [n for n in rest if n not in out]
+        if tc.hidden_quick:
+            quick |= hidden
+        fresh = self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick) if rest else []
+        for rec in fresh:
+            out[rec.obj_name] = rec
+        for n in obj_names:
+            if n not in self._tracks:
+                self._lost[n] = lost.get(n, 0) + 1
+            if out[n].ok and out[n].confidence >= tc.min_confidence:
+                self._last[n] = out[n].cam_from_model
+            elif n in last:
+                self._last[n] = last[n]
+        seeds = [r for r in fresh if r.ok and r.confidence >= tc.min_confidence]
+        if seeds:
+            # New tracks get no corners where an object found in this frame is in front of them.
+            placed = [n for n in obj_names if out[n].ok]
+            t0 = time.perf_counter()
+            hidden_now = self._hidden([out[n].cam_from_model for n in placed], placed, camera)
+            t_hidden = (time.perf_counter() - t0) / len(seeds)
+            for rec in seeds:
+                t0 = time.perf_counter() - t_hidden
+                in_front = hidden_now[placed.index(rec.obj_name)] if hidden_now else ()
+                tr = self._seed(rec.obj_name, gray, rec, camera, in_front)
                 rec.timings["seed"] = time.perf_counter() - t0
                 if tr is not None:
                     self._tracks[rec.obj_name] = tr
-            self._lost[rec.obj_name] = lost.get(rec.obj_name, 0) + 1
         self._prev = {
             "gray": gray,
             "scene_id": frame.scene_id,
@@ -743,17 +770,53 @@ class PoseEstimator:
         }
         return [out[n] for n in obj_names]
 
-    def _hidden(self, tracks: list[Track], names: list[str], camera: Camera) -> list[list] | None:
-        """``track.occlusion_margin_px``: what may hide each tracked object, at the tracks' last poses
-        (:func:`batchpose.track.occluders`); None when off or with fewer than two tracks."""
+    def _hidden_lost(self, rest: list[str], quick, out: dict[str, PoseRecord], last: dict, frame: Frame):
+        """``track.hidden_above``: which of the objects ``rest`` to estimate the objects tracked in this frame
+        (``out``) cover enough from in front at their last confident poses (``last``): a ``hidden`` record
+        for each due a ``quick`` estimate, and the set of the others (which ``track.hidden_quick`` makes quick)."""
+        tc, camera, recs, hidden = self.conf.track, frame.camera, [], set()
+        tracked = [n for n, r in out.items() if r.tracked and n in self.models]
+        if tc.hidden_above >= 1 or not tracked:
+            return recs, frozenset()
+        for name in rest:
+            if name not in last or name not in self.models:
+                continue
+            t0 = time.perf_counter()
+            others = [(self._hull(n), out[n].cam_from_model) for n in tracked]
+            frac, each = covered(
+                self._hull(name), last[name], others, camera.K, camera.dist, camera.width, camera.height
+            )
+            if frac < tc.hidden_above:
+                continue
+            if name not in quick:
+                hidden.add(name)
+                continue
+            by = ", ".join(n for n, f in sorted(zip(tracked, each, strict=True), key=lambda x: -x[1]) if f > 0)
+            recs.append(
+                PoseRecord(
+                    frame.frame_id,
+                    name,
+                    "hidden",
+                    f"{100 * frac:.0f}% of it is behind {by} at its last pose; not estimated",
+                    obj_id=self.obj_ids.get(name, 0),
+                    timings={"track": time.perf_counter() - t0},
+                )
+            )
+        return recs, frozenset(hidden)
+
+    def _hull(self, name: str) -> np.ndarray:
+        """The object's convex-hull vertices (model frame), computed once."""
+        if name not in self._hulls:
+            self._hulls[name] = np.asarray(self.models[name].mesh.convex_hull.vertices)
+        return self._hulls[name]
+
+    def _hidden(self, poses: list[np.ndarray], names: list[str], camera: Camera) -> list[list] | None:
+        """``track.occlusion_margin_px``: what may hide each of the objects at ``poses``
+        (:func:`batchpose.track.occluders`); None when off or with fewer than two objects."""
         margin = self.conf.track.occlusion_margin_px
-        if margin < 0 or len(tracks) < 2 or any(n not in self.models for n in names):
+        if margin < 0 or len(poses) < 2 or any(n not in self.models for n in names):
             return None
-        for n in names:
-            if n not in self._hulls:
-                self._hulls[n] = np.asarray(self.models[n].mesh.convex_hull.vertices)
-        hulls = [self._hulls[n] for n in names]
-        poses = [t.cam_from_model for t in tracks]
+        hulls = [self._hull(n) for n in names]
         return occluders(hulls, poses, camera.K, camera.dist, camera.width, camera.height, margin)
 
     def _use_depth(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:

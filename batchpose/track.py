@@ -91,6 +91,7 @@ def seed(
     K: np.ndarray,
     dist: np.ndarray,
     conf: TrackConfig,
+    hidden: list[Occluder] = (),
 ):
     """Corners on the object at a known pose, where the frame looks like the mesh rendered there.
 
@@ -101,7 +102,9 @@ def seed(
     Args:
         gray: (H, W) uint8 frame. render_gray: (H, W) uint8 the mesh rendered at ``cam_from_model``;
             depth_m: its z-depth (pinhole, no distortion), 0 off the object. dist: the frame's distortion
-            coefficients (may be empty).
+            coefficients (may be empty). hidden: what is in front of part of the object (:func:`occluders`):
+            no corners where it is and the object is farther than its nearest point, so the corners are
+            spread over the part that shows and ``conf.quality`` is relative to its strongest corner.
 
     Returns:
         xy (N, 2) float32 and X (N, 3) float64 model-frame points; N may be 0.
@@ -110,6 +113,8 @@ def seed(
     # No corners whose flow window reaches over the silhouette: the background does not move with the object.
     k = 2 * (conf.window_px // 2) + 1
     mask = cv2.erode(mask, np.ones((k, k), np.uint8))
+    for occ in hidden:
+        mask[occ.mask & (depth_m > occ.near_m)] = 0
     if not mask.any():
         return np.zeros((0, 2), np.float32), np.zeros((0, 3))
     corners = cv2.goodFeaturesToTrack(
@@ -190,13 +195,8 @@ def occluders(hulls: list[np.ndarray], poses: list[np.ndarray], K, dist, width: 
     """
     regions = []
     for X, T in zip(hulls, poses, strict=True):
-        cam = X @ T[:3, :3].T + T[:3, 3]
-        if np.any(cam[:, 2] <= 1e-3):
-            regions.append(None)  # reaches behind the camera: not projected, hides nothing
-            continue
-        uv, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)
-        uv = uv.reshape(-1, 2)
-        regions.append((uv.min(axis=0) - margin_px, uv.max(axis=0) + margin_px, uv, float(cam[:, 2].min())))
+        r = _region(X, T, K, dist)
+        regions.append(None if r is None else (r[0].min(axis=0) - margin_px, r[0].max(axis=0) + margin_px, *r))
     out: list[list[Occluder]] = [[] for _ in hulls]
     k = np.ones((2 * margin_px + 1, 2 * margin_px + 1), np.uint8)
     for j, b in enumerate(regions):
@@ -207,11 +207,54 @@ def occluders(hulls: list[np.ndarray], poses: list[np.ndarray], K, dist, width: 
             if i == j or a is None or not (np.all(a[0] <= b[1]) and np.all(b[0] <= a[1])):
                 continue
             if mask is None:
-                m = np.zeros((height, width), np.uint8)
-                cv2.fillConvexPoly(m, np.rint(cv2.convexHull(b[2].astype(np.float32))).astype(np.int32), 1)
+                m = _fill(b[2], width, height)
                 mask = (cv2.dilate(m, k) if margin_px > 0 else m).astype(bool)
             out[i].append(Occluder(mask, b[3]))
     return out
+
+
+def _region(X: np.ndarray, T: np.ndarray, K, dist):
+    """Model points ``X`` (the convex hull) at pose ``T``: their image points (N, 2) and the nearest depth,
+    or None when they reach behind the camera (not projected)."""
+    cam = X @ T[:3, :3].T + T[:3, 3]
+    if np.any(cam[:, 2] <= 1e-3):
+        return None
+    uv, _ = cv2.projectPoints(X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)
+    return uv.reshape(-1, 2), float(cam[:, 2].min())
+
+
+def _fill(uv: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(height, width) uint8: 1 inside the convex hull of the image points ``uv``."""
+    m = np.zeros((height, width), np.uint8)
+    cv2.fillConvexPoly(m, np.rint(cv2.convexHull(uv.astype(np.float32))).astype(np.int32), 1)
+    return m
+
+
+def covered(
+    hull: np.ndarray, pose: np.ndarray, others: list[tuple[np.ndarray, np.ndarray]], K, dist, width: int, height: int
+) -> tuple[float, list[float]]:
+    """How much of an object's image region (``hull`` projected at ``pose``) the ``others`` ((hull, pose)
+    each) cover from in front (their centres nearer the camera): the fraction covered by all of them, and by
+    each one (0 for one behind or beside it). (0, zeros) when the object is off the image."""
+    none = (0.0, [0.0] * len(others))
+    r = _region(hull, pose, K, dist)
+    if r is None:
+        return none
+    own = _fill(r[0], width, height).astype(bool)
+    area = int(own.sum())
+    if area == 0:
+        return none
+    union = np.zeros_like(own)
+    each = []
+    for X, T in others:
+        o = _region(X, T, K, dist) if T[2, 3] < pose[2, 3] else None
+        if o is None:
+            each.append(0.0)
+            continue
+        m = own & _fill(o[0], width, height).astype(bool)
+        union |= m
+        each.append(float(m.sum()) / area)
+    return float(union.sum()) / area, each
 
 
 def _inside(mask: np.ndarray, xy: np.ndarray) -> np.ndarray:

@@ -236,6 +236,10 @@ def test_track_config_is_checked():
         load_estimator_config({"track": {"lost_full_every": 0}})
     with pytest.raises(ConfigError, match="track.occlusion_margin_px must be >= -1"):
         load_estimator_config({"track": {"occlusion_margin_px": -2}})
+    with pytest.raises(ConfigError, match="track.hidden_above must be in \\(0, 1\\]"):
+        load_estimator_config({"track": {"hidden_above": 0}})
+    with pytest.raises(ConfigError, match="track.hidden_quick"):
+        load_estimator_config({"track": {"hidden_quick": "yes"}})
     with pytest.raises(ConfigError, match="retry_contrast_threshold must be 0 \\(off\\) or below"):
         load_estimator_config({"features": {"retry_contrast_threshold": 0.03}})
     with pytest.raises(ConfigError, match="strong_inliers must be >= 0"):
@@ -420,3 +424,90 @@ def test_an_object_whose_track_dies_young_still_counts_as_lost(cracker_model, cr
     assert not any(r.ok for r in recs[2:])
     # lost count 1 at the seeding, 2 after the tracked frame: full estimates at counts 4 and 8
     assert [("fine" in r.timings) for r in recs[2:]] == [False, False, True, False, False, False]
+
+
+def test_covered_counts_only_what_is_in_front(cracker_model):
+    """track.covered: the gelatin box's projected hull in front of the cracker box covers part of it; the same
+    box behind it covers nothing; off to the side, nothing."""
+    from batchpose.mesh import load_mesh
+    from batchpose.track import covered
+    from tests.conftest import GELATIN
+
+    gelatin = load_mesh(GELATIN)
+    hull_c = np.asarray(cracker_model.mesh.convex_hull.vertices)
+    hull_g = np.asarray(gelatin.mesh.convex_hull.vertices)
+    T = clip_pose(0, cracker_model.center_m)
+    G = np.eye(4)
+    G[:3, 3] = [T[0, 3], T[1, 3], 0.35]  # on the box's line of sight, in front
+    frac, each = covered(hull_c, T, [(hull_g, G)], K_SYN, np.zeros(0), 640, 480)
+    assert 0.3 < frac < 1 and each == [frac]
+    behind = G.copy()
+    behind[2, 3] = T[2, 3] + 0.3
+    assert covered(hull_c, T, [(hull_g, behind)], K_SYN, np.zeros(0), 640, 480) == (0.0, [0.0])
+    aside = G.copy()
+    aside[0, 3] += 0.5
+    both = covered(hull_c, T, [(hull_g, aside), (hull_g, G)], K_SYN, np.zeros(0), 640, 480)
+    assert both[0] == frac and both[1] == [0.0, frac]
+
+
+@pytest.fixture(scope="module")
+def gelatin_library(cache_dir):
+    from batchpose import build_templates
+    from batchpose.mesh import load_mesh
+    from tests.conftest import GELATIN
+
+    gelatin = load_mesh(GELATIN)
+    return gelatin, build_templates.load(build_templates.main(gelatin, EstimatorConfig(), K_SYN, 640, 480, cache_dir))
+
+
+@pytest.mark.parametrize("hidden_above", [0.6, 1.0])
+def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
+    cracker_model, cracker_library, gelatin_library, hidden_above
+):
+    """The gelatin box (tracked) passes in front of the still cracker box, hiding up to ~95 % of it, and on.
+    The cracker's track ends; while the gelatin box covers >= 60 % of it at its last pose, the frames that
+    would get a quick estimate report it ``hidden``, naming the gelatin box; once less is covered it is
+    found again and tracked. Every confident pose is right. With track.hidden_above = 1 every frame is
+    estimated."""
+    gelatin, gel_lib = gelatin_library
+    renderer, rng = get_renderer(), np.random.default_rng(11)
+    bg = textured_background(rng)
+    T = clip_pose(0, cracker_model.center_m)
+    frames, visible = [], []
+    for i in range(30):
+        G = np.eye(4)
+        G[:3, :3] = cv2.Rodrigues(np.array([0.3, 0.5, 0.2]))[0]
+        G[:3, 3] = [-0.12 + 0.006 * i, 0.0, 0.3]  # in front of the box, ~16 px a frame to the right
+        rgb, depth = renderer.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
+        rgb_g, depth_g = renderer.render(gelatin.content_hash, gelatin.mesh, G, K_SYN, 640, 480, "lit")
+        img = bg.copy()
+        img[depth > 0] = rgb[depth > 0]
+        img[depth_g > 0] = rgb_g[depth_g > 0]
+        img = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        frames.append(frame_of(img, i))
+        visible.append(((depth > 0) & (depth_g == 0)).sum() / (depth > 0).sum())
+    assert min(visible) < 0.1 and visible[0] == 1.0 and visible[-1] > 0.7
+    conf = dataclasses.replace(EstimatorConfig(), track=TrackConfig(hidden_above=hidden_above))
+    est = PoseEstimator(
+        conf,
+        {cracker_model.name: cracker_library, gelatin.name: gel_lib},
+        models={cracker_model.name: cracker_model, gelatin.name: gelatin},
+        renderer=renderer,
+    )
+    est.reset_tracks()
+    recs = [est.estimate_frame(f, [cracker_model.name, gelatin.name]) for f in frames]
+    box = [r[0] for r in recs]
+    assert all(r[1].ok for r in recs) and all(r[1].tracked for r in recs[1:])
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    confident = [r for r in box if r.ok and r.confidence >= conf.track.min_confidence]
+    errors = [add_error(r.cam_from_model, T, pts) / cracker_model.diameter_m for r in confident]
+    print([(r.status, r.tracked, round(v, 2)) for r, v in zip(box, visible, strict=True)])
+    assert max(errors) < 0.1
+    hidden = [i for i, r in enumerate(box) if r.status == "hidden"]
+    if hidden_above == 1.0:
+        assert not hidden
+    else:
+        assert len(hidden) >= 2 and all(visible[i] < 0.25 for i in hidden)
+        assert all(box[i].reason.endswith("behind 009_gelatin_box at its last pose; not estimated") for i in hidden)
+        assert not box[hidden[0] - 1].tracked  # the track had ended: a lost object is never skipped otherwise
+    assert all(r.ok and r.tracked for r in box[-3:])
