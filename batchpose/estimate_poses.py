@@ -199,7 +199,9 @@ def main(
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)
     try:
         with joblib.parallel_config(backend=backend, n_jobs=jobs if backend == "loky" else -1):
-            parallel = joblib.Parallel(return_as="generator", pre_dispatch="2*n_jobs")
+            # Unordered: each task's shard is written as soon as it is done, not held behind a slower task
+            # dispatched earlier (a killed run keeps it; merge_shards orders the rows).
+            parallel = joblib.Parallel(return_as="generator_unordered", pre_dispatch="2*n_jobs")
             for rows in parallel(tasks):
                 if rows:
                     shard = shard_dir / f"shard-{n_shards:06d}.parquet"
