@@ -241,7 +241,14 @@ class PoseEstimator:
         for i in todo:
             first = records[i]
             rec = self._estimate_object(
-                first.obj_name, gray, keypoints, index, camera, gt_by_name.get(first.obj_name), frame_id
+                first.obj_name,
+                gray,
+                keypoints,
+                index,
+                camera,
+                gt_by_name.get(first.obj_name),
+                frame_id,
+                sift=self._sift_retry,
             )
             for k, v in first.timings.items():  # both attempts' time is the pair's
                 rec.timings[k] = rec.timings.get(k, 0.0) + v
@@ -288,6 +295,7 @@ class PoseEstimator:
         gt_pose: np.ndarray | None,
         frame_id: str,
         quick: bool = False,
+        sift=None,
     ) -> PoseRecord:
         conf = self.conf
         if conf.method == "tp_ub":
@@ -302,7 +310,7 @@ class PoseEstimator:
         if conf.fine.enabled and not strong:
             t0 = time.perf_counter()
             box = self._object_box(name, res, corr, camera, gt_pose)
-            fine = None if box is None else self._fine_pass(name, gray, box, camera)
+            fine = None if box is None else self._fine_pass(name, gray, box, camera, sift=sift)
             if fine is not None:
                 passes.insert(0, fine)
             if conf.fine.locate and conf.match.roi == "none" and self._weak(name, self._best(passes)[0], camera):
@@ -328,7 +336,7 @@ class PoseEstimator:
                         continue
                     searched.append(hough)
                     located = self._fine_pass(
-                        name, gray, hough, camera, found.pairs if conf.fine.locate_pairs else None
+                        name, gray, hough, camera, found.pairs if conf.fine.locate_pairs else None, sift
                     )
                     if located is not None:
                         passes.insert(0, located)
@@ -476,10 +484,10 @@ class PoseEstimator:
             return True
         return confidence(res.n_inliers, res.median_residual_px, self.conf) < self.conf.fine.locate_below
 
-    def _fine_pass(self, name, gray, box, camera, extra: Correspondences | None = None):
+    def _fine_pass(self, name, gray, box, camera, extra: Correspondences | None = None, sift=None):
         """Match again inside ``box``, upsampled, plus the ``extra`` pairs: (result, pairs, keypoints,
         descriptors) or None."""
-        xy_f, desc_f = fine_keypoints(gray, box, self.conf, self._sift)
+        xy_f, desc_f = fine_keypoints(gray, box, self.conf, sift or self._sift)
         index = flann_index(desc_f, self.conf.match) if self.conf.match.direction == "template_to_query" else None
         corr_f = self._match(name, xy_f, desc_f, index, None, self.conf.fine.prefilter_views)
         if extra is not None and len(extra):
