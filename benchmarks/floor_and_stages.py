@@ -509,6 +509,11 @@ def main() -> int:
         f"{s2 / s1c:.2f}x that (how the job pipeline itself scales; unpinned --jobs 1 already keeps "
         f"{cores1:.2f} cores busy with OpenCV's and the software renderer's own threads)"
     )
+    main2, workers2 = (r2["rss"].cpu_seconds(role) for role in ("main", "worker"))
+    print(
+        f"--jobs 2 CPU time: run process (reading frames, dispatch, shards, write) {main2:.1f} s = "
+        f"{main2 / r2['wall']:.2f} cores, workers {workers2:.1f} s = {workers2 / r2['wall']:.2f} cores"
+    )
     print(
         f"other processes kept {r1['rss'].other_load():.2f} / {r2['rss'].other_load():.2f} cores busy during the "
         f"jobs 1 / jobs 2 runs (machine: {psutil.cpu_count()} cores; results are only comparable when this is ~0)"
