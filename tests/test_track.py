@@ -352,6 +352,27 @@ def test_an_object_that_stays_lost_gets_quick_estimates_between_full_ones(
     assert add_error(recs[6].cam_from_model, clip[0][1], pts) < 0.02 * cracker_model.diameter_m
 
 
+def gelatin_pose(x: float, z: float) -> np.ndarray:
+    """The gelatin box, turned, at (x, 0, z) in the camera frame."""
+    G = np.eye(4)
+    G[:3, :3] = cv2.Rodrigues(np.array([0.3, 0.5, 0.2]))[0]
+    G[:3, 3] = [x, 0.0, z]
+    return G
+
+
+def two_boxes(cracker_model, T: np.ndarray, gelatin, G: np.ndarray, bg: np.ndarray, rng):
+    """The cracker box at T and the gelatin box at G (in front) over ``bg``, with sensor noise: (RGB, the
+    cracker's depth, the gelatin box's depth)."""
+    renderer = get_renderer()
+    rgb, depth = renderer.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
+    rgb_g, depth_g = renderer.render(gelatin.content_hash, gelatin.mesh, G, K_SYN, 640, 480, "lit")
+    img = bg.copy()
+    img[depth > 0] = rgb[depth > 0]
+    img[depth_g > 0] = rgb_g[depth_g > 0]
+    img = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+    return img, depth, depth_g
+
+
 def test_points_hidden_by_a_tracked_object_in_front_are_dropped(cracker_model):
     """The gelatin box slides in front of the (almost still) cracker box until half of it is hidden. With the
     gelatin box as an occluder (``track.occluders`` at its previous pose, as the estimator passes it), the
@@ -369,15 +390,8 @@ def test_points_hidden_by_a_tracked_object_in_front_are_dropped(cracker_model):
     for i in range(16):
         T = clip_pose(0, cracker_model.center_m)
         T[0, 3] += 0.0005 * i
-        G = np.eye(4)
-        G[:3, :3] = cv2.Rodrigues(np.array([0.3, 0.5, 0.2]))[0]
-        G[:3, 3] = [-0.09 + 0.005 * i, 0.0, 0.45]  # in front of the box, ~9 px a frame to the right
-        rgb, depth = renderer.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
-        rgb_g, depth_g = renderer.render(gelatin.content_hash, gelatin.mesh, G, K_SYN, 640, 480, "lit")
-        img = bg.copy()
-        img[depth > 0] = rgb[depth > 0]
-        img[depth_g > 0] = rgb_g[depth_g > 0]
-        img = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        G = gelatin_pose(-0.09 + 0.005 * i, 0.45)  # in front of the box, ~9 px a frame to the right
+        img, depth, depth_g = two_boxes(cracker_model, T, gelatin, G, bg, rng)
         grays.append(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY))
         boxes.append(T)
         gels.append(G)
@@ -475,15 +489,8 @@ def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
     T = clip_pose(0, cracker_model.center_m)
     frames, visible = [], []
     for i in range(30):
-        G = np.eye(4)
-        G[:3, :3] = cv2.Rodrigues(np.array([0.3, 0.5, 0.2]))[0]
-        G[:3, 3] = [-0.12 + 0.006 * i, 0.0, 0.3]  # in front of the box, ~16 px a frame to the right
-        rgb, depth = renderer.render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
-        rgb_g, depth_g = renderer.render(gelatin.content_hash, gelatin.mesh, G, K_SYN, 640, 480, "lit")
-        img = bg.copy()
-        img[depth > 0] = rgb[depth > 0]
-        img[depth_g > 0] = rgb_g[depth_g > 0]
-        img = np.clip(img.astype(np.float32) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        G = gelatin_pose(-0.12 + 0.006 * i, 0.3)  # in front of the box, ~16 px a frame to the right
+        img, depth, depth_g = two_boxes(cracker_model, T, gelatin, G, bg, rng)
         frames.append(frame_of(img, i))
         visible.append(((depth > 0) & (depth_g == 0)).sum() / (depth > 0).sum())
     assert min(visible) < 0.1 and visible[0] == 1.0 and visible[-1] > 0.7
