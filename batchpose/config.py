@@ -301,7 +301,7 @@ class TrackConfig:
     hidden_quick: bool = False
     """Make those every-``lost_full_every``-th estimates of a mostly hidden object quick ones (see
     ``lost_full_every``). Two-object benchmark log (reports/BENCHMARKS.md, session 14): the further object's
-    cost +0.45x -> +0.20x the floor, ADD < 0.1 d 97.1 -> 96.7 % (the fine pass finds more of a mostly hidden
+    cost +0.47x -> ~+0.19x the floor, ADD < 0.1 d 97.1 -> 96.7 % (the fine pass finds more of a mostly hidden
     object). On in the ``fast`` preset."""
     chunk_frames: int = 64
     """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on

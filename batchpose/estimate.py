@@ -684,8 +684,8 @@ class PoseEstimator:
         tracks = self._tracks if follows else {}
         lost = self._lost if follows else {}
         last = self._last if follows else {}
-        self._tracks, self._lost, self._prev = {}, {}, None  # rebuilt below; stay empty if this frame fails
-        self._last = {}
+        # rebuilt below; stay empty if this frame fails
+        self._tracks, self._lost, self._last, self._prev = {}, {}, {}, None
         out: dict[str, PoseRecord] = {}
         due = [n for n in obj_names if n in tracks and not (tc.redetect_every and tracks[n].age >= tc.redetect_every)]
         t0 = time.perf_counter()
@@ -786,11 +786,11 @@ class PoseEstimator:
         tracked = [n for n, r in out.items() if r.tracked and n in self.models]
         if tc.hidden_above >= 1 or not tracked:
             return recs, frozenset()
+        others = [(self._hull(n), out[n].cam_from_model) for n in tracked]
         for name in rest:
             if name not in last or name not in self.models:
                 continue
             t0 = time.perf_counter()
-            others = [(self._hull(n), out[n].cam_from_model) for n in tracked]
             frac, each = covered(
                 self._hull(name), last[name], others, camera.K, camera.dist, camera.width, camera.height
             )

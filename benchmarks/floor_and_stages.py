@@ -181,7 +181,7 @@ def busy_throughput(poses: pd.DataFrame, jobs: int) -> float:
     return jobs * poses["frame_id"].nunique() / poses["time_total_s"].sum()
 
 
-def shard_throughput(run_dir: Path, jobs: int) -> tuple[float, float]:
+def shard_throughput(run_dir: Path) -> tuple[float, float]:
     """Frames/s from shard completion times (mtimes): (first to last, first shard mtime).
 
     "First to last" counts every shard after the first, the tail in which workers run out of tasks
@@ -245,7 +245,7 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
         )
     wall = time.perf_counter() - t0
     poses = pd.read_parquet(run_dir / "poses.parquet")
-    first_to_last, first_shard = shard_throughput(run_dir, jobs)
+    first_to_last, first_shard = shard_throughput(run_dir)
     shards = len(list((run_dir / "shards").glob("shard-*.parquet")))
     est_start = timer.starts["estimate"][0]
     return {
