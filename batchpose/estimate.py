@@ -29,11 +29,11 @@ from batchpose.depth import Surface, align_to_depth
 from batchpose.errors import BatchposeError, ImageError
 from batchpose.features import detect, detect_shapes, make_sift, to_gray
 from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image
-from batchpose.gnc_pnp import solve_pose
+from batchpose.gnc_pnp import planar_alternative, solve_pose
 from batchpose.plane import Target, resting_faces, search_plane, stable_faces, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
-from batchpose.search import Silhouettes, search, texture_match
+from batchpose.search import Silhouettes, distinct_matches, search, texture_match
 from batchpose.templates import TemplateLibrary
 from batchpose.track import Track, anchor_to_render, covered, follow_all, occluders, seed
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
@@ -102,6 +102,18 @@ def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> floa
     return w * h / union
 
 
+class _LazyLab:
+    """An RGB image's Lab conversion, made on first use."""
+
+    def __init__(self, rgb: np.ndarray) -> None:
+        self._rgb, self._lab = rgb, None
+
+    def get(self) -> np.ndarray:
+        if self._lab is None:
+            self._lab = cv2.cvtColor(self._rgb, cv2.COLOR_RGB2LAB)
+        return self._lab
+
+
 class PoseEstimator:
     """Estimates poses of objects whose template libraries it holds.
 
@@ -144,6 +156,7 @@ class PoseEstimator:
         self._last: dict[str, np.ndarray] = {}  # each object's last confident pose in the current sequence
         self._hulls: dict[str, np.ndarray] = {}
         self._prev: dict | None = None
+        self._lab: _LazyLab | None = None  # the frame estimate_image is estimating, in Lab
 
     # -- per-object caches -------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -205,6 +218,7 @@ class PoseEstimator:
         if self.conf.match.direction == "template_to_query":
             query_index = flann_index(desc_q, self.conf.match)
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
+        self._lab = None if self.conf.planar_spread <= 0 else _LazyLab(rgb)
         records = []
         for name in obj_names:
             rec = self._estimate_object(
@@ -344,13 +358,13 @@ class PoseEstimator:
         res, corr, xy_k, desc_k = self._best(passes)
         rec.n_matches = len(corr)
         rec.templates = corr.templates
-        x_used = corr.x
+        x_used, X_used = corr.x, corr.X
         if self._can_refine(name):
             t0 = time.perf_counter()
             refined = self._refine(name, passes, camera, xy_k, desc_k, strong)
             timings["refine"] = time.perf_counter() - t0
             if refined is not None:
-                res, x_used = refined.result, refined.x
+                res, x_used, X_used = refined.result, refined.x, refined.X
         if res is None:
             rec.status = "too_few_matches"
             rec.reason = f"{len(corr)} matches after the ratio test, need {conf.min_matches}"
@@ -360,6 +374,8 @@ class PoseEstimator:
             rec.status, rec.reason = "pnp_failed", why
         if not rec.status == "ok":
             return rec
+        if (mirrored := self._planar_mirror(name, res, x_used, X_used, camera, timings)) is not None:
+            res, rec.reason = mirrored
         rec.cam_from_model = res.cam_from_model
         rec.n_inliers = res.n_inliers
         rec.median_residual_px = res.median_residual_px
@@ -372,6 +388,35 @@ class PoseEstimator:
                 f"({rec.n_inliers} inliers, median residual {rec.median_residual_px:.1f} px)"
             )
         return rec
+
+    def _planar_mirror(self, name: str, res, x: np.ndarray, X: np.ndarray, camera: Camera, timings: dict):
+        """``planar_spread``: (the other pose of a planar inlier set as a result, a reason) when its mesh
+        looks more like the frame than the pose's own; None to keep the pose. Its time counts as refinement."""
+        conf = self.conf
+        if conf.planar_spread <= 0 or self._lab is None or not self._can_render(name):
+            return None
+        t0 = time.perf_counter()
+        inl = res.inliers
+        other = planar_alternative(x[inl], X[inl], res.cam_from_model, camera.K, camera.dist, conf.planar_spread)
+        if other is None:
+            return None
+        T, r_inl = other
+        own = max(res.median_residual_px, 0.5)
+        if not np.median(r_inl) <= conf.planar_residual_ratio * own or self._implausible(name, T, camera):
+            return None
+        renders = [self._render(name, pose, camera) for pose in (res.cam_from_model, T)]
+        matches = distinct_matches(self._lab.get(), *renders)
+        timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
+        if matches is None or not 1.0 - matches[1] <= (1.0 - matches[0]) / conf.planar_mismatch_ratio:
+            return None
+        residuals = res.residuals_px.copy()
+        residuals[inl] = r_inl
+        a, b = matches
+        why = f"the planar inliers' other pose (texture match {b:.2f} against {a:.2f} where they differ)"
+        return dataclasses.replace(res, cam_from_model=T, residuals_px=residuals), why
+
+    def _can_render(self, name: str) -> bool:
+        return self.renderer is not None and name in self.models
 
     def _match(self, name, xy_q, desc_q, query_index, roi, prefilter_views: int) -> Correspondences:
         """2D-3D pairs between the frame keypoints and the object's library (SPEC §2)."""

@@ -57,6 +57,51 @@ def reprojection_errors(
     return np.linalg.norm(proj.reshape(-1, 2) - x, axis=1)
 
 
+def planar_alternative(
+    x: np.ndarray, X: np.ndarray, cam_from_model: np.ndarray, K: np.ndarray, dist: np.ndarray, spread: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The other pose a planar point set fits: (cam_from_model, residuals_px), or None.
+
+    Points on one plane seen from afar (weak perspective) fit two poses, the plane tilted either way about
+    the line of sight; IPPE returns both. None when the points are not planar (their smallest spread at
+    least ``spread`` times the middle one), are fewer than 4, or the other pose is within 5 degrees of
+    ``cam_from_model``.
+
+    Args:
+        x, X: (N, 2) pixels and (N, 3) model points (the pose's inliers).
+    """
+    if len(X) < 4 or spread <= 0:
+        return None
+    X, x = X.astype(np.float64), x.astype(np.float64)
+    s = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+    if not s[2] < spread * s[1]:
+        return None
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(X, x, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    except cv2.error:
+        return None
+    R0 = cam_from_model[:3, :3]
+    best = None
+    for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
+        if not _valid_pose(tvec):
+            continue
+        turn = _turn_deg(R0, cv2.Rodrigues(rvec)[0])
+        if turn > 5.0 and (best is None or turn > best[0]):
+            best = (turn, rvec, tvec)
+    if best is None:
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(X, x, K, dist, best[1].copy(), best[2].copy())
+    T = to_matrix(rvec, tvec)
+    if not _valid_pose(tvec) or _turn_deg(R0, T[:3, :3]) <= 5.0:
+        return None  # slid back to the pose itself
+    return T, reprojection_errors(X, x, rvec, tvec, K, dist)
+
+
+def _turn_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """The angle of the rotation between two rotation matrices, degrees."""
+    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0))))
+
+
 def to_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]

@@ -255,6 +255,26 @@ def texture_match(frame_lab: np.ndarray, rendered_rgb: np.ndarray) -> float:
     return _correlation(frame_lab, cv2.cvtColor(rendered_rgb[None], cv2.COLOR_RGB2LAB)[0])
 
 
+def distinct_matches(
+    frame_lab: np.ndarray, a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], min_px: int = 30
+) -> tuple[float, float] | None:
+    """:func:`texture_match` of two renders (rgb, depth) of one object, each over its pixels where the two
+    differ: in one silhouette only, or in both with colours apart by more than 20 per channel on average.
+    Where they agree the frame cannot tell them apart, and counting it would only dilute the difference.
+    None when either has fewer than ``min_px`` such pixels."""
+    (rgb_a, depth_a), (rgb_b, depth_b) = a, b
+    sil_a, sil_b = depth_a > 0, depth_b > 0
+    apart = np.abs(rgb_a.astype(np.int16) - rgb_b.astype(np.int16)).sum(axis=2) > 60
+    differ = (sil_a ^ sil_b) | (sil_a & sil_b & apart)
+    out = []
+    for sil, rgb in ((sil_a, rgb_a), (sil_b, rgb_b)):
+        px = differ & sil
+        if px.sum() < min_px:
+            return None
+        out.append(texture_match(frame_lab[px], rgb[px]))
+    return out[0], out[1]
+
+
 #: The polish's turn sizes (degrees), largest first.
 POLISH_STEPS_DEG = (20.0, 10.0, 5.0)
 
