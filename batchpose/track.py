@@ -235,14 +235,15 @@ def covered(
 ) -> tuple[float, list[float]]:
     """How much of an object's image region (``hull`` projected at ``pose``) the ``others`` ((hull, pose)
     each) cover from in front (their centres nearer the camera): the fraction covered by all of them, and by
-    each one (0 for one behind or beside it). (0, zeros) when the object is off the image."""
+    each one (0 for one behind or beside it). (0, zeros) when the object is mostly (over half its region) off
+    the image: it has left the view, and what moves over its last place does not hide it."""
     none = (0.0, [0.0] * len(others))
     r = _region(hull, pose, K, dist)
     if r is None:
         return none
     own = _fill(r[0], width, height).astype(bool)
     area = int(own.sum())
-    if area == 0:
+    if area == 0 or area < 0.5 * cv2.contourArea(cv2.convexHull(r[0].astype(np.float32))):
         return none
     union = np.zeros_like(own)
     each = []

@@ -462,6 +462,15 @@ def test_covered_counts_only_what_is_in_front(cracker_model):
     aside[0, 3] += 0.5
     both = covered(hull_c, T, [(hull_g, aside), (hull_g, G)], K_SYN, np.zeros(0), 640, 480)
     assert both[0] == frac and both[1] == [0.0, frac]
+    # Mostly off the image (leaving the view): nothing hides it, even with the box in front of what is left.
+    gone, in_front = T.copy(), G.copy()
+    gone[0, 3] += T[2, 3] * 320 / K_SYN[0, 0] + 0.05
+    in_front[0, 3] = gone[0, 3] * 0.35 / T[2, 3]
+    assert covered(hull_c, gone, [(hull_g, in_front)], K_SYN, np.zeros(0), 640, 480) == (0.0, [0.0])
+    partly, front = gone.copy(), in_front.copy()  # 85 % in view (gone: 21 %), the box in front of it
+    partly[0, 3] -= 0.1
+    front[0, 3] = partly[0, 3] * 0.35 / T[2, 3] - 0.02
+    assert covered(hull_c, partly, [(hull_g, front)], K_SYN, np.zeros(0), 640, 480)[0] > 0.3
 
 
 @pytest.fixture(scope="module")
