@@ -103,10 +103,10 @@ def _overlap(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> floa
 
 
 class _LazyLab:
-    """An RGB image's Lab conversion, made on first use."""
+    """An RGB image's Lab conversion, made on first use, and its gray image."""
 
-    def __init__(self, rgb: np.ndarray) -> None:
-        self._rgb, self._lab = rgb, None
+    def __init__(self, rgb: np.ndarray, gray: np.ndarray) -> None:
+        self._rgb, self._lab, self.gray = rgb, None, gray
 
     def get(self) -> np.ndarray:
         if self._lab is None:
@@ -218,7 +218,7 @@ class PoseEstimator:
         if self.conf.match.direction == "template_to_query":
             query_index = flann_index(desc_q, self.conf.match)
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
-        self._lab = None if self.conf.planar_spread <= 0 else _LazyLab(rgb)
+        self._lab = None if self.conf.planar_spread <= 0 else _LazyLab(rgb, gray)
         records = []
         for name in obj_names:
             rec = self._estimate_object(
@@ -405,14 +405,18 @@ class PoseEstimator:
         if not np.median(r_inl) <= conf.planar_residual_ratio * own or self._implausible(name, T, camera):
             return None
         renders = [self._render(name, pose, camera) for pose in (res.cam_from_model, T)]
-        matches = distinct_matches(self._lab.get(), *renders)
+        fits = distinct_matches(self._lab.get(), self._lab.gray, *renders)
         timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
-        if matches is None or not 1.0 - matches[1] <= (1.0 - matches[0]) / conf.planar_mismatch_ratio:
-            return None
+        ratio = conf.planar_mismatch_ratio
+        if fits is None or not all(1.0 - b <= (1.0 - a) / ratio for a, b in zip(*fits, strict=True)):
+            return None  # the other pose must fit better by colour and by edges
         residuals = res.residuals_px.copy()
         residuals[inl] = r_inl
-        a, b = matches
-        why = f"the planar inliers' other pose (texture match {b:.2f} against {a:.2f} where they differ)"
+        (ca, ea), (cb, eb) = fits
+        why = (
+            f"the planar inliers' other pose (where the two differ: texture match {cb:.2f} against {ca:.2f}, "
+            f"edges {eb:.2f} against {ea:.2f})"
+        )
         return dataclasses.replace(res, cam_from_model=T, residuals_px=residuals), why
 
     def _can_render(self, name: str) -> bool:

@@ -255,13 +255,34 @@ def texture_match(frame_lab: np.ndarray, rendered_rgb: np.ndarray) -> float:
     return _correlation(frame_lab, cv2.cvtColor(rendered_rgb[None], cv2.COLOR_RGB2LAB)[0])
 
 
+def gradient_match(frame_gray: np.ndarray, rendered_gray: np.ndarray, px: np.ndarray) -> float:
+    """How well a render's edges line up with the frame's over the pixels ``px`` (bool mask): the summed
+    |dot product| of their Sobel gradients over the product of the gradients' norms, in [0, 1]. Blind to
+    colour and to the sign of an edge (the object lighter or darker than what is behind it)."""
+    out = []
+    for img in (frame_gray, rendered_gray):
+        g = img.astype(np.float32)
+        out.append((cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)[px], cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)[px]))
+    (fx, fy), (rx, ry) = out
+    dot = float(np.abs(fx * rx + fy * ry).sum())
+    return dot / float(np.sqrt((fx * fx + fy * fy).sum() * (rx * rx + ry * ry).sum()) + 1e-9)
+
+
 def distinct_matches(
-    frame_lab: np.ndarray, a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray], min_px: int = 30
-) -> tuple[float, float] | None:
-    """:func:`texture_match` of two renders (rgb, depth) of one object, each over its pixels where the two
-    differ: in one silhouette only, or in both with colours apart by more than 20 per channel on average.
-    Where they agree the frame cannot tell them apart, and counting it would only dilute the difference.
-    None when either has fewer than ``min_px`` such pixels."""
+    frame_lab: np.ndarray,
+    frame_gray: np.ndarray,
+    a: tuple[np.ndarray, np.ndarray],
+    b: tuple[np.ndarray, np.ndarray],
+    min_px: int = 30,
+) -> tuple[tuple[float, float], tuple[float, float]] | None:
+    """How well each of two renders (rgb, depth) of one object fits the frame where the two differ: in one
+    silhouette only, or in both with colours apart by more than 20 per channel on average. Where they agree
+    the frame cannot tell them apart, and counting it would only dilute the difference.
+
+    Returns:
+        For a and for b: (:func:`texture_match` over its differing pixels, :func:`gradient_match` over them
+        grown by 2 px, so its outline counts); None when either has fewer than ``min_px`` such pixels.
+    """
     (rgb_a, depth_a), (rgb_b, depth_b) = a, b
     sil_a, sil_b = depth_a > 0, depth_b > 0
     apart = np.abs(rgb_a.astype(np.int16) - rgb_b.astype(np.int16)).sum(axis=2) > 60
@@ -271,7 +292,9 @@ def distinct_matches(
         px = differ & sil
         if px.sum() < min_px:
             return None
-        out.append(texture_match(frame_lab[px], rgb[px]))
+        grown = cv2.dilate(px.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        out.append((texture_match(frame_lab[px], rgb[px]), gradient_match(frame_gray, gray, grown)))
     return out[0], out[1]
 
 

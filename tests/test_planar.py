@@ -9,6 +9,7 @@ import pytest
 from batchpose.config import EstimatorConfig, load_estimator_config
 from batchpose.errors import ConfigError
 from batchpose.estimate import PoseEstimator, _LazyLab
+from batchpose.features import to_gray
 from batchpose.frames import Camera
 from batchpose.gnc_pnp import PnpResult, planar_alternative, reprojection_errors
 from batchpose.render import get_renderer
@@ -69,7 +70,7 @@ def test_the_pose_whose_render_the_frame_shows_is_kept(cracker_model, cracker_li
         models={cracker_model.name: cracker_model},
         renderer=get_renderer(),
     )
-    est._lab = _LazyLab(img)
+    est._lab = _LazyLab(img, to_gray(img))
     timings: dict[str, float] = {}
     res = as_result(T_alt if start == "mirrored" else T, X, x)
     out = est._planar_mirror(cracker_model.name, res, x, X, Camera(K_SYN, 640, 480), timings)
@@ -79,7 +80,7 @@ def test_the_pose_whose_render_the_frame_shows_is_kept(cracker_model, cracker_li
         assert out is not None
         fixed, why = out
         assert rot_deg(fixed.cam_from_model, T) < 1.0
-        assert "other pose" in why
+        assert "other pose" in why and "edges" in why
         assert fixed.n_inliers == len(X) and np.median(fixed.residuals_px) < 1.0
     assert timings["refine"] > 0
 
@@ -95,3 +96,15 @@ def test_the_pose_whose_render_the_frame_shows_is_kept(cracker_model, cracker_li
 def test_planar_options_are_checked(key, value, message):
     with pytest.raises(ConfigError, match=message):
         load_estimator_config({key: value})
+
+
+def test_gradient_match_sees_edges_not_their_sign_or_colour():
+    """The same outline lighter or darker than its surround matches fully; moved by 6 px it does not."""
+    from batchpose.search import gradient_match
+
+    img = np.full((100, 100), 60, np.uint8)
+    cv2.rectangle(img, (30, 30), (70, 60), 200, -1)
+    px = np.ones(img.shape, bool)
+    assert gradient_match(img, img, px) == pytest.approx(1.0, abs=1e-6)
+    assert gradient_match(img, 255 - img, px) == pytest.approx(1.0, abs=1e-6)
+    assert gradient_match(img, np.roll(img, 6, axis=1), px) < 0.6
