@@ -167,7 +167,7 @@ class PoseEstimator:
             return  # needs no matching
         for name in self.libraries:
             self._library_index(name)
-            if self.renderer is not None and name in self.models:
+            if self._can_render(name):
                 lib = self.libraries[name]
                 self._render(name, lib.cam_from_model(0), Camera(lib.K, lib.width, lib.height))
 
@@ -393,7 +393,7 @@ class PoseEstimator:
         """``planar_spread``: (the other pose of a planar inlier set as a result, a reason) when its mesh
         looks more like the frame than the pose's own; None to keep the pose. Its time counts as refinement."""
         conf = self.conf
-        if conf.planar_spread <= 0 or self._lab is None or not self._can_render(name):
+        if self._lab is None or not self._can_render(name):  # None: planar_spread is 0
             return None
         t0 = time.perf_counter()
         inl = res.inliers
@@ -563,7 +563,7 @@ class PoseEstimator:
         return self._surfaces[name]
 
     def _can_refine(self, name: str) -> bool:
-        return self.conf.refine.enabled and self.renderer is not None and name in self.models
+        return self.conf.refine.enabled and self._can_render(name)
 
     def _refine(self, name, passes, camera: Camera, xy_q, desc_q, strong: bool = False):
         """Refine the passes' poses (and, with ``refine.hypotheses`` > 1, per-template poses); best guided score.

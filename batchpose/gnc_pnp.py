@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import GncConfig
+from batchpose.metrics import rotation_error_deg
 
 
 @dataclass
@@ -85,21 +86,16 @@ def planar_alternative(
     for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
         if not _valid_pose(tvec):
             continue
-        turn = _turn_deg(R0, cv2.Rodrigues(rvec)[0])
+        turn = rotation_error_deg(R0, cv2.Rodrigues(rvec)[0])
         if turn > 5.0 and (best is None or turn > best[0]):
             best = (turn, rvec, tvec)
     if best is None:
         return None
     rvec, tvec = cv2.solvePnPRefineLM(X, x, K, dist, best[1].copy(), best[2].copy())
     T = to_matrix(rvec, tvec)
-    if not _valid_pose(tvec) or _turn_deg(R0, T[:3, :3]) <= 5.0:
+    if not _valid_pose(tvec) or rotation_error_deg(R0, T[:3, :3]) <= 5.0:
         return None  # slid back to the pose itself
     return T, reprojection_errors(X, x, rvec, tvec, K, dist)
-
-
-def _turn_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """The angle of the rotation between two rotation matrices, degrees."""
-    return float(np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def to_matrix(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
