@@ -303,6 +303,10 @@ class TrackConfig:
     ``lost_full_every``). Two-object benchmark log (reports/BENCHMARKS.md, session 14): the further object's
     cost +0.47x -> ~+0.19x the floor, ADD < 0.1 d 97.1 -> 96.7 % (the fine pass finds more of a mostly hidden
     object). On in the ``fast`` preset."""
+    hidden_retry: bool = False
+    """Give those full estimates of a mostly hidden object ``features.retry_contrast_threshold``'s retry
+    too. Off: the object was not found because it is hidden, not for want of contrast, and the retry (SIFT
+    at the lower threshold, then a second full estimate) more than doubles the estimate's time."""
     chunk_frames: int = 64
     """Frames per worker task while tracking. A track never crosses tasks, so results do not depend on
     ``--jobs``; each task starts with a full estimate per object. Two-object benchmark log (800 frames,

@@ -190,6 +190,7 @@ class PoseEstimator:
         gt: tuple[ObjectPose, ...] = (),
         frame_id: str = "image",
         quick: frozenset[str] = frozenset(),
+        no_retry: frozenset[str] = frozenset(),
     ) -> list[PoseRecord]:
         """Estimate every object in ``obj_names`` in one RGB image.
 
@@ -201,6 +202,7 @@ class PoseEstimator:
             quick: objects estimated as if the whole-frame pass were strong (its first stage only, no fine
                 pass or locator, one refinement hypothesis): tracking's cheaper retry for an object that stays
                 lost, or mostly hidden.
+            no_retry: objects not given ``features.retry_contrast_threshold``'s retry (nor are the ``quick`` ones).
 
         Raises:
             ImageError / CameraError: the image or calibration is unusable.
@@ -227,7 +229,7 @@ class PoseEstimator:
             rec.timings["sift"] = t_sift
             records.append(rec)
         if self.conf.features.retry_contrast_threshold > 0:
-            self._retry(records, gray, camera, gt_by_name, frame_id, quick)
+            self._retry(records, gray, camera, gt_by_name, frame_id, quick | no_retry)
         return records
 
     def _retry(self, records: list[PoseRecord], gray, camera: Camera, gt_by_name: dict, frame_id: str, skip):
@@ -793,7 +795,10 @@ class PoseEstimator:
         rest = [n for n in rest if n not in out]
         if tc.hidden_quick:
             quick |= hidden
-        fresh = self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick) if rest else []
+        no_retry = frozenset() if tc.hidden_retry else hidden
+        fresh = []
+        if rest:
+            fresh = self.estimate_image(rgb, camera, rest, frame.gt, frame.frame_id, quick=quick, no_retry=no_retry)
         for rec in fresh:
             out[rec.obj_name] = rec
         for n in obj_names:

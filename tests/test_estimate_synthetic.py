@@ -84,7 +84,8 @@ def test_round_trip_30_poses(cracker_model, cracker_library):
 def test_a_dim_object_is_found_by_the_retry_at_a_lower_contrast(cracker_model, cracker_library):
     """The box at a tenth of its contrast: the default keypoints find it in at most one of six frames; the
     retry at ``features.retry_contrast_threshold`` 0.01 finds at least four more, within 0.05 d; a confident
-    pose the first estimate found stays exactly as it was, a weak one is replaced only by a stronger one."""
+    pose the first estimate found stays exactly as it was, a weak one is replaced only by a stronger one.
+    An object in ``no_retry`` gets the first estimate only."""
     import dataclasses
 
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
@@ -109,6 +110,10 @@ def test_a_dim_object_is_found_by_the_retry_at_a_lower_contrast(cracker_model, c
         img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
         a = plain.estimate_image(img, cam, [cracker_model.name])[0]
         b = retried.estimate_image(img, cam, [cracker_model.name])[0]
+        c = retried.estimate_image(img, cam, [cracker_model.name], no_retry=frozenset([cracker_model.name]))[0]
+        assert (c.status, c.reason) == (a.status, a.reason)  # no_retry: the first estimate only
+        if a.ok:
+            np.testing.assert_array_equal(a.cam_from_model, c.cam_from_model)
         if a.ok:
             found["plain"] += add_error(a.cam_from_model, T, pts) < 0.05 * cracker_model.diameter_m
             if a.confidence >= retried.conf.verify_below:

@@ -240,6 +240,8 @@ def test_track_config_is_checked():
         load_estimator_config({"track": {"hidden_above": 0}})
     with pytest.raises(ConfigError, match="track.hidden_quick"):
         load_estimator_config({"track": {"hidden_quick": "yes"}})
+    with pytest.raises(ConfigError, match="track.hidden_retry"):
+        load_estimator_config({"track": {"hidden_retry": 1}})
     with pytest.raises(ConfigError, match="retry_contrast_threshold must be 0 \\(off\\) or below"):
         load_estimator_config({"features": {"retry_contrast_threshold": 0.03}})
     with pytest.raises(ConfigError, match="strong_inliers must be >= 0"):
@@ -504,7 +506,14 @@ def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
         visible.append(((depth > 0) & (depth_g == 0)).sum() / (depth > 0).sum())
     assert min(visible) < 0.1 and visible[0] == 1.0 and visible[-1] > 0.7
     conf = dataclasses.replace(EstimatorConfig(), track=TrackConfig(hidden_above=hidden_above))
-    est = PoseEstimator(
+    unretried = []
+
+    class Watched(PoseEstimator):  # records which objects the tracker spares the low-contrast retry
+        def estimate_image(self, *args, no_retry=frozenset(), **kwargs):
+            unretried.extend(no_retry)
+            return super().estimate_image(*args, no_retry=no_retry, **kwargs)
+
+    est = Watched(
         conf,
         {cracker_model.name: cracker_library, gelatin.name: gel_lib},
         models={cracker_model.name: cracker_model, gelatin.name: gelatin},
@@ -526,4 +535,6 @@ def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
         assert len(hidden) >= 2 and all(visible[i] < 0.25 for i in hidden)
         assert all(box[i].reason.endswith("behind 009_gelatin_box at its last pose; not estimated") for i in hidden)
         assert not box[hidden[0] - 1].tracked  # the track had ended: a lost object is never skipped otherwise
+    # The full estimates of the mostly hidden box get no low-contrast retry (track.hidden_retry false).
+    assert set(unretried) == ({cracker_model.name} if hidden_above < 1 else set())
     assert all(r.ok and r.tracked for r in box[-3:])
