@@ -460,6 +460,17 @@ class EstimatorConfig:
     the pixels where the two renders differ, compared with the frame by colour (Lab correlation, as
     ``verify_below``) and by edges (Sobel gradients); the other pose is kept when it fits better by both
     (``planar_mismatch_ratio``). 0: no check (the ``paper`` pipeline)."""
+    alternatives: int = 2
+    """A full estimate that refined several hypotheses (``refine.hypotheses``) also checks up to this many of
+    the others against the pose it chose: those whose guided score is at least ``alternatives_score`` of the
+    best one's and that differ from the pose (over 5 degrees or 0.1 diameters apart), best first, and the
+    best refined hypothesis when the template pairs' pose won over it by inlier count. Each is rendered beside
+    the pose and compared with the frame where the two renders differ, by colour and by edges, as
+    ``planar_spread``'s check is (with ``planar_mismatch_ratio``); it replaces the pose when both prefer it.
+    Guided scores of a right and a wrong pose of a small, weakly textured object are often within a few
+    pairs. 0: no check (the ``paper`` pipeline)."""
+    alternatives_score: float = 0.5
+    """See ``alternatives``."""
     planar_residual_ratio: float = 2.0
     """See ``planar_spread``: the other pose's median inlier residual may be at most this many times the
     pose's own (taken as at least 0.5 px)."""
@@ -653,6 +664,10 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: verify_min_match must be in [-1, 1], got {conf.verify_min_match}")
     if not 0 <= conf.planar_spread < 1:
         raise ConfigError(f"{where}: planar_spread must be in [0, 1), got {conf.planar_spread}")
+    if conf.alternatives < 0:
+        raise ConfigError(f"{where}: alternatives must be >= 0, got {conf.alternatives}")
+    if not 0 < conf.alternatives_score <= 1:
+        raise ConfigError(f"{where}: alternatives_score must be in (0, 1], got {conf.alternatives_score}")
     if conf.planar_residual_ratio < 1:
         raise ConfigError(f"{where}: planar_residual_ratio must be >= 1, got {conf.planar_residual_ratio}")
     if conf.planar_mismatch_ratio < 1:

@@ -30,6 +30,7 @@ from batchpose.errors import BatchposeError, ImageError
 from batchpose.features import detect, detect_shapes, make_sift, to_gray
 from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image
 from batchpose.gnc_pnp import planar_alternative, solve_pose
+from batchpose.metrics import rotation_error_deg
 from batchpose.plane import Target, resting_faces, search_plane, stable_faces, support_plane
 from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
@@ -220,7 +221,8 @@ class PoseEstimator:
         if self.conf.match.direction == "template_to_query":
             query_index = flann_index(desc_q, self.conf.match)
         gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
-        self._lab = None if self.conf.planar_spread <= 0 else _LazyLab(rgb, gray)
+        checks = self.conf.planar_spread > 0 or self.conf.alternatives > 0
+        self._lab = _LazyLab(rgb, gray) if checks else None
         records = []
         for name in obj_names:
             rec = self._estimate_object(
@@ -361,9 +363,10 @@ class PoseEstimator:
         rec.n_matches = len(corr)
         rec.templates = corr.templates
         x_used, X_used = corr.x, corr.X
+        tried: list = []
         if self._can_refine(name):
             t0 = time.perf_counter()
-            refined = self._refine(name, passes, camera, xy_k, desc_k, strong)
+            refined = self._refine(name, passes, camera, xy_k, desc_k, strong, tried)
             timings["refine"] = time.perf_counter() - t0
             if refined is not None:
                 res, x_used, X_used = refined.result, refined.x, refined.X
@@ -376,6 +379,8 @@ class PoseEstimator:
             rec.status, rec.reason = "pnp_failed", why
         if not rec.status == "ok":
             return rec
+        if (other := self._alternative(name, res, tried, camera, timings)) is not None:
+            (res, x_used, X_used), rec.reason = other
         if (mirrored := self._planar_mirror(name, res, x_used, X_used, camera, timings)) is not None:
             res, rec.reason = mirrored
         rec.cam_from_model = res.cam_from_model
@@ -390,6 +395,53 @@ class PoseEstimator:
                 f"({rec.n_inliers} inliers, median residual {rec.median_residual_px:.1f} px)"
             )
         return rec
+
+    def _alternative(self, name: str, res, tried: list, camera: Camera, timings: dict):
+        """``alternatives``: ((result, x, X), reason) of a refined hypothesis the frame prefers to the pose
+        ``res`` by colour and by edges where their renders differ; None to keep the pose."""
+        conf = self.conf
+        if conf.alternatives <= 0 or self._lab is None or len(tried) < 2:
+            return None
+        t0 = time.perf_counter()
+        diameter = self.models[name].diameter_m
+
+        def same(A, B):
+            return (
+                rotation_error_deg(A[:3, :3], B[:3, :3]) <= 5.0
+                and np.linalg.norm(A[:3, 3] - B[:3, 3]) <= 0.1 * diameter
+            )
+
+        top = max(r.score for r in tried)
+        ranked = sorted(tried, key=lambda r: -r.score)
+        picked = []  # distinct poses, best score first
+        for r in ranked:
+            T = r.result.cam_from_model
+            if r.result.status != "ok" or r.score < conf.alternatives_score * top or r.score <= 0:
+                continue
+            if same(T, res.cam_from_model) or any(same(T, p.result.cam_from_model) for p in picked):
+                continue
+            if self._implausible(name, T, camera):
+                continue
+            picked.append(r)
+            if len(picked) == conf.alternatives:
+                break
+        if not picked:
+            return None
+        current, chosen, why = self._render(name, res.cam_from_model, camera), None, ""
+        ratio = conf.planar_mismatch_ratio
+        for r in picked:
+            rendered = self._render(name, r.result.cam_from_model, camera)
+            fits = distinct_matches(self._lab.get(), self._lab.gray, current, rendered)
+            if fits is None or not all(1.0 - b <= (1.0 - a) / ratio for a, b in zip(*fits, strict=True)):
+                continue
+            (ca, ea), (cb, eb) = fits
+            current, chosen = rendered, r
+            why = (
+                f"a {r.result.n_inliers}-inlier alternative fits the frame better where the two differ "
+                f"(texture match {cb:.2f} against {ca:.2f}, edges {eb:.2f} against {ea:.2f})"
+            )
+        timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
+        return None if chosen is None else ((chosen.result, chosen.x, chosen.X), why)
 
     def _planar_mirror(self, name: str, res, x: np.ndarray, X: np.ndarray, camera: Camera, timings: dict):
         """``planar_spread``: (the other pose of a planar inlier set as a result, a reason) when its mesh
@@ -567,8 +619,9 @@ class PoseEstimator:
     def _can_refine(self, name: str) -> bool:
         return self.conf.refine.enabled and self._can_render(name)
 
-    def _refine(self, name, passes, camera: Camera, xy_q, desc_q, strong: bool = False):
+    def _refine(self, name, passes, camera: Camera, xy_q, desc_q, strong: bool = False, tried: list | None = None):
         """Refine the passes' poses (and, with ``refine.hypotheses`` > 1, per-template poses); best guided score.
+        Every refined hypothesis is appended to ``tried`` (when given).
 
         Args:
             passes: (result, pairs, ...) of the coarse and fine passes, best first.
@@ -594,7 +647,7 @@ class PoseEstimator:
                     starts.append(sub.cam_from_model)
 
         def refine(T, iterations):
-            return refine_pose(
+            r = refine_pose(
                 T,
                 xy_q,
                 desc_q,
@@ -608,6 +661,9 @@ class PoseEstimator:
                 iterations=iterations,
                 support_px=conf.support_px,
             )
+            if r is not None and tried is not None:
+                tried.append(r)
+            return r
 
         def finish(r):
             """The remaining rounds after a first one; keeps the first when they do not score higher."""
