@@ -463,8 +463,9 @@ class EstimatorConfig:
     alternatives: int = 2
     """A full estimate that refined several hypotheses (``refine.hypotheses``) also checks up to this many of
     the others against the pose it chose: those whose guided score is at least ``alternatives_score`` of the
-    best one's and that differ from the pose (over 5 degrees or 0.1 diameters apart), best first, and the
-    best refined hypothesis when the template pairs' pose won over it by inlier count. Each is rendered beside
+    best one's, with at least that fraction of the pose's own inliers, and that differ from the pose (over 5
+    degrees or 0.1 diameters apart), best first, and the best refined hypothesis when the template pairs'
+    pose won over it by inlier count (but by less than that fraction). Each is rendered beside
     the pose and compared with the frame where the two renders differ, by colour and by edges, as
     ``planar_spread``'s check is (with ``planar_mismatch_ratio``); it replaces the pose when both prefer it.
     Guided scores of a right and a wrong pose of a small, weakly textured object are often within a few

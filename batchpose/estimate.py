@@ -411,13 +411,15 @@ class PoseEstimator:
                 and np.linalg.norm(A[:3, 3] - B[:3, 3]) <= 0.1 * diameter
             )
 
-        top = max(r.score for r in tried)
+        top, least = max(r.score for r in tried), conf.alternatives_score
         ranked = sorted(tried, key=lambda r: -r.score)
         picked = []  # distinct poses, best score first
         for r in ranked:
             T = r.result.cam_from_model
-            if r.result.status != "ok" or r.score < conf.alternatives_score * top or r.score <= 0:
+            if r.result.status != "ok" or r.score <= 0 or r.score < least * top:
                 continue
+            if r.result.n_inliers < least * res.n_inliers:
+                continue  # a pose that many more pairs support is not second-guessed by a few
             if same(T, res.cam_from_model) or any(same(T, p.result.cam_from_model) for p in picked):
                 continue
             if self._implausible(name, T, camera):

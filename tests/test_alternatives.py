@@ -69,8 +69,8 @@ def test_a_lower_scored_hypothesis_the_frame_shows_replaces_the_pose(scene, crac
 
 def test_the_right_pose_is_kept_and_weak_or_equal_hypotheses_are_not_checked(scene, cracker_model):
     """The right pose stays against a higher-scored wrong one; a right hypothesis under
-    ``alternatives_score`` of the best score, or one within 5 degrees of the pose, is not considered;
-    ``alternatives: 0`` checks nothing."""
+    ``alternatives_score`` of the best score or with fewer than that fraction of the pose's inliers, or one
+    within 5 degrees of the pose, is not considered; ``alternatives: 0`` checks nothing."""
     est, T, wrong, X, x = scene
     name = cracker_model.name
     right = hypothesis(T, X, x, 18)
@@ -79,6 +79,10 @@ def test_the_right_pose_is_kept_and_weak_or_equal_hypotheses_are_not_checked(sce
     assert est._alternative(name, weak[0].result, weak, CAM, {}) is None
     near = [hypothesis(wrong, X, x, 20), hypothesis(turned(wrong, 3.0), X, x, 19)]
     assert est._alternative(name, near[0].result, near, CAM, {}) is None
+    # a pose 48 pairs support (e.g. the template pairs') is not second-guessed by 18 (< 0.5 * 48)
+    outnumbered = [hypothesis(wrong, X, x, 20), hypothesis(T, X, x, 18)]
+    assert est._alternative(name, as_result(wrong, X, x), outnumbered, CAM, {}) is None
+    assert est._alternative(name, hypothesis(wrong, X, x, 36).result, outnumbered, CAM, {}) is not None
     off = PoseEstimator(
         load_estimator_config({"alternatives": 0}),
         est.libraries,
