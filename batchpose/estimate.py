@@ -430,18 +430,12 @@ class PoseEstimator:
         if not picked:
             return None
         current, chosen, why = self._render(name, res.cam_from_model, camera), None, ""
-        ratio = conf.planar_mismatch_ratio
         for r in picked:
             rendered = self._render(name, r.result.cam_from_model, camera)
-            fits = distinct_matches(self._lab.get(), self._lab.gray, current, rendered)
-            if fits is None or not all(1.0 - b <= (1.0 - a) / ratio for a, b in zip(*fits, strict=True)):
+            if (cues := self._frame_prefers(current, rendered)) is None:
                 continue
-            (ca, ea), (cb, eb) = fits
             current, chosen = rendered, r
-            why = (
-                f"a {r.result.n_inliers}-inlier alternative fits the frame better where the two differ "
-                f"(texture match {cb:.2f} against {ca:.2f}, edges {eb:.2f} against {ea:.2f})"
-            )
+            why = f"a {r.result.n_inliers}-inlier alternative fits the frame better where the two differ ({cues})"
         timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
         return None if chosen is None else ((chosen.result, chosen.x, chosen.X), why)
 
@@ -449,7 +443,7 @@ class PoseEstimator:
         """``planar_spread``: (the other pose of a planar inlier set as a result, a reason) when its mesh
         looks more like the frame than the pose's own; None to keep the pose. Its time counts as refinement."""
         conf = self.conf
-        if self._lab is None or not self._can_render(name):  # None: planar_spread is 0
+        if self._lab is None or not self._can_render(name):  # None: neither check is on
             return None
         t0 = time.perf_counter()
         inl = res.inliers
@@ -460,20 +454,25 @@ class PoseEstimator:
         own = max(res.median_residual_px, 0.5)
         if not np.median(r_inl) <= conf.planar_residual_ratio * own or self._implausible(name, T, camera):
             return None
-        renders = [self._render(name, pose, camera) for pose in (res.cam_from_model, T)]
-        fits = distinct_matches(self._lab.get(), self._lab.gray, *renders)
+        cues = self._frame_prefers(*(self._render(name, pose, camera) for pose in (res.cam_from_model, T)))
         timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
-        ratio = conf.planar_mismatch_ratio
-        if fits is None or not all(1.0 - b <= (1.0 - a) / ratio for a, b in zip(*fits, strict=True)):
-            return None  # the other pose must fit better by colour and by edges
+        if cues is None:
+            return None
         residuals = res.residuals_px.copy()
         residuals[inl] = r_inl
-        (ca, ea), (cb, eb) = fits
-        why = (
-            f"the planar inliers' other pose (where the two differ: texture match {cb:.2f} against {ca:.2f}, "
-            f"edges {eb:.2f} against {ea:.2f})"
-        )
+        why = f"the planar inliers' other pose (where the two differ: {cues})"
         return dataclasses.replace(res, cam_from_model=T, residuals_px=residuals), why
+
+    def _frame_prefers(self, current, other) -> str | None:
+        """Compare the renders ``current`` and ``other`` with the frame where they differ: the two cues'
+        figures ("texture match ..., edges ...") when ``other`` fits better by colour *and* by edges, each
+        leaving at most 1 / ``planar_mismatch_ratio`` of ``current``'s mismatch; None otherwise."""
+        fits = distinct_matches(self._lab.get(), self._lab.gray, current, other)
+        ratio = self.conf.planar_mismatch_ratio
+        if fits is None or not all(1.0 - b <= (1.0 - a) / ratio for a, b in zip(*fits, strict=True)):
+            return None
+        (ca, ea), (cb, eb) = fits
+        return f"texture match {cb:.2f} against {ca:.2f}, edges {eb:.2f} against {ea:.2f}"
 
     def _can_render(self, name: str) -> bool:
         return self.renderer is not None and name in self.models

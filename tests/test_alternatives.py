@@ -6,17 +6,15 @@ import cv2
 import numpy as np
 import pytest
 
-from batchpose.config import EstimatorConfig, load_estimator_config
+from batchpose.config import load_estimator_config
 from batchpose.errors import ConfigError
-from batchpose.estimate import PoseEstimator, _LazyLab
-from batchpose.features import to_gray
+from batchpose.estimate import PoseEstimator
 from batchpose.frames import Camera
 from batchpose.refine import Refined
-from batchpose.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose
 from tests.test_fine import rot_deg
-from tests.test_planar import as_result, face_view
+from tests.test_planar import as_result, face_view, looking_at
 
 CAM = Camera(K_SYN, 640, 480)
 
@@ -41,14 +39,7 @@ def scene(cracker_model, cracker_library):
     pose and a pose turned 30 degrees away from it."""
     T, X, x = face_view(cracker_model, 1.2)
     img = compose(np.random.default_rng(3), cracker_model, T)
-    est = PoseEstimator(
-        EstimatorConfig(),
-        {cracker_model.name: cracker_library},
-        models={cracker_model.name: cracker_model},
-        renderer=get_renderer(),
-    )
-    est._lab = _LazyLab(img, to_gray(img))
-    return est, T, turned(T, 30.0), X, x
+    return looking_at(img, cracker_model, cracker_library), T, turned(T, 30.0), X, x
 
 
 def test_a_lower_scored_hypothesis_the_frame_shows_replaces_the_pose(scene, cracker_model):

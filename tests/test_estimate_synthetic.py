@@ -114,7 +114,6 @@ def test_a_dim_object_is_found_by_the_retry_at_a_lower_contrast(cracker_model, c
         assert (c.status, c.reason) == (a.status, a.reason)  # no_retry: the first estimate only
         if a.ok:
             np.testing.assert_array_equal(a.cam_from_model, c.cam_from_model)
-        if a.ok:
             found["plain"] += add_error(a.cam_from_model, T, pts) < 0.05 * cracker_model.diameter_m
             if a.confidence >= retried.conf.verify_below:
                 np.testing.assert_array_equal(a.cam_from_model, b.cam_from_model)

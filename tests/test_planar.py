@@ -36,6 +36,13 @@ def face_view(model, distance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndar
     return T, X, x
 
 
+def looking_at(img: np.ndarray, model, library) -> PoseEstimator:
+    """A default estimator (with a renderer) whose frame checks look at ``img``, as in ``estimate_image``."""
+    est = PoseEstimator(EstimatorConfig(), {model.name: library}, models={model.name: model}, renderer=get_renderer())
+    est._lab = _LazyLab(img, to_gray(img))
+    return est
+
+
 def as_result(T: np.ndarray, X: np.ndarray, x: np.ndarray) -> PnpResult:
     r = reprojection_errors(X, x, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K_SYN, NO_DIST)
     return PnpResult("ok", cam_from_model=T, inliers=np.ones(len(X), bool), residuals_px=r)
@@ -64,13 +71,7 @@ def test_the_pose_whose_render_the_frame_shows_is_kept(cracker_model, cracker_li
     T, X, x = face_view(cracker_model, 2.0)
     img = compose(np.random.default_rng(5), cracker_model, T)
     T_alt, _ = planar_alternative(x, X, T, K_SYN, NO_DIST, 0.05)
-    est = PoseEstimator(
-        EstimatorConfig(),
-        {cracker_model.name: cracker_library},
-        models={cracker_model.name: cracker_model},
-        renderer=get_renderer(),
-    )
-    est._lab = _LazyLab(img, to_gray(img))
+    est = looking_at(img, cracker_model, cracker_library)
     timings: dict[str, float] = {}
     res = as_result(T_alt if start == "mirrored" else T, X, x)
     out = est._planar_mirror(cracker_model.name, res, x, X, Camera(K_SYN, 640, 480), timings)
