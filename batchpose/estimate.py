@@ -1070,7 +1070,8 @@ class PoseEstimator:
     def _verify_weak(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``verify_below``: a weak full estimate whose rendered mesh does not look like the frame where it puts
         the object (texture match below ``verify_min_match`` over the pixels no other reported pose hides)
-        becomes low_confidence."""
+        becomes low_confidence; so does one whose mesh shows under 30 px in the frame at all (beyond the
+        renderer's far plane, off the image), which nothing can confirm."""
         conf = self.conf
         if self.renderer is None:
             return
@@ -1093,10 +1094,17 @@ class PoseEstimator:
             t0 = time.perf_counter()
             ren_rgb, depth = shown[rec.obj_name]
             seen = depth > 0
+            if seen.sum() < 30:  # beyond the renderer's far plane, or off the image: nothing to check it with
+                rec.status = "low_confidence"
+                rec.reason = (
+                    f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g}) that shows "
+                    f"{int(seen.sum())} px of the mesh in the frame (object centre {rec.cam_from_model[2, 3]:.1f} m "
+                    "away): too little to check it against"
+                )
             for name, (_, other) in shown.items():
                 if name != rec.obj_name:
                     seen &= ~((other > 0) & (other < depth - 0.01))
-            if seen.sum() >= 30:
+            if rec.ok and seen.sum() >= 30:
                 match = texture_match(lab[seen], ren_rgb[seen])
                 if match < conf.verify_min_match:
                     rec.status = "low_confidence"

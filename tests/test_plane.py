@@ -4,6 +4,7 @@ where the found objects stand."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import cv2
 import numpy as np
@@ -218,6 +219,31 @@ def test_a_weak_pose_must_look_like_the_frame(cracker_model, cracker_library, of
         assert rec.status == "low_confidence" and rec.reason.startswith(
             "weak pose (confidence 0.35 < verify_below 0.5) whose mesh does not look like the frame there"
         )
+
+
+@pytest.mark.parametrize("where", ["far", "off"])
+def test_a_weak_pose_the_frame_barely_shows_is_not_kept(cracker_model, cracker_library, where):
+    """verify_below: a weak pose that puts the object where its mesh covers (almost) no pixel of the frame —
+    25 m away, past the renderer's far plane (a 7-inlier pose 23 m off was reported ok in a tabletop frame), or
+    beside the image — cannot be checked, so it is not reported ok; a confident one is not judged."""
+    frame, img, models, found, T = _scene(cracker_model, True)
+    pose = T.copy()
+    if where == "far":
+        pose[:3, 3] *= 25.0 / np.linalg.norm(T[:3, 3])
+    else:
+        pose[:3, 3] += [2.0, 0.0, 0.0]
+    est = PoseEstimator(load_estimator_config({}), {cracker_model.name: cracker_library}, models=models,
+                        renderer=get_renderer())  # fmt: skip
+    weak = PoseRecord("table", cracker_model.name, "ok", cam_from_model=pose, confidence=0.35)
+    sure = PoseRecord("table", cracker_model.name, "ok", cam_from_model=pose, confidence=0.6)
+    for rec in (weak, sure):
+        est._verify_weak(frame, img, [*found, rec])
+    assert sure.ok and weak.status == "low_confidence"
+    assert re.fullmatch(
+        r"weak pose \(confidence 0\.35 < verify_below 0\.5\) that shows \d+ px of the mesh in the frame "
+        r"\(object centre \d+\.\d m away\): too little to check it against",
+        weak.reason,
+    ), weak.reason
 
 
 def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch_of_its_colours():
