@@ -448,7 +448,8 @@ class EstimatorConfig:
     mesh rendered at the pose must correlate (Lab) with the frame over its pixels no other reported pose
     hides at least ``verify_min_match``, or its status is low_confidence. On benchmarks/tabletop.py and
     heldout.py 30 of 31 weak SIFT poses were wrong or of absent objects (texture match -0.2-0.23 for the
-    absent ones), the right one matched 0.65. 0: no check."""
+    absent ones), the right one matched 0.65. One whose mesh shows under 30 px in the frame (past
+    ``render.zfar_m``, beside the image) cannot be checked and is low_confidence too. 0: no check."""
     verify_min_match: float = 0.35
     """See ``verify_below`` (the depth and plane searches keep what they find by the same threshold)."""
     planar_spread: float = 0.05
