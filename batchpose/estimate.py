@@ -42,6 +42,8 @@ from batchpose.weights import geom_weights, model_support, model_voxel_grid, sup
 log = logging.getLogger("batchpose")
 #: Statuses of an object the frame shows no pose of, which ``depth.search`` looks for.
 NOT_FOUND = ("too_few_matches", "pnp_failed", "low_confidence")
+#: ``verify_below`` judges a weak pose over at least this many of its rendered pixels.
+VERIFY_MIN_PX = 30
 
 
 def confidence(n_inliers: int, median_residual_px: float, conf: EstimatorConfig) -> float:
@@ -1094,24 +1096,25 @@ class PoseEstimator:
             t0 = time.perf_counter()
             ren_rgb, depth = shown[rec.obj_name]
             seen = depth > 0
-            if seen.sum() < 30:  # beyond the renderer's far plane, or off the image: nothing to check it with
+            weak_why = f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g})"
+            if seen.sum() < VERIFY_MIN_PX:  # beyond the renderer's far plane, or off the image
                 rec.status = "low_confidence"
                 rec.reason = (
-                    f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g}) that shows "
-                    f"{int(seen.sum())} px of the mesh in the frame (object centre {rec.cam_from_model[2, 3]:.1f} m "
-                    "away): too little to check it against"
+                    f"{weak_why} that shows {int(seen.sum())} px of the mesh in the frame (object centre "
+                    f"{rec.cam_from_model[2, 3]:.1f} m away): too little to check it against"
                 )
-            for name, (_, other) in shown.items():
-                if name != rec.obj_name:
-                    seen &= ~((other > 0) & (other < depth - 0.01))
-            if rec.ok and seen.sum() >= 30:
-                match = texture_match(lab[seen], ren_rgb[seen])
-                if match < conf.verify_min_match:
-                    rec.status = "low_confidence"
-                    rec.reason = (
-                        f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g}) whose mesh "
-                        f"does not look like the frame there (texture match {match:.2f} < {conf.verify_min_match:g})"
-                    )
+            else:
+                for name, (_, other) in shown.items():
+                    if name != rec.obj_name:
+                        seen &= ~((other > 0) & (other < depth - 0.01))
+                if seen.sum() >= VERIFY_MIN_PX:  # mostly hidden by reported poses: nothing to judge it by
+                    match = texture_match(lab[seen], ren_rgb[seen])
+                    if match < conf.verify_min_match:
+                        rec.status = "low_confidence"
+                        rec.reason = (
+                            f"{weak_why} whose mesh does not look like the frame there (texture match "
+                            f"{match:.2f} < {conf.verify_min_match:g})"
+                        )
             rec.timings["refine"] = rec.timings.get("refine", 0.0) + shared + time.perf_counter() - t0
 
     def _use_plane(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
