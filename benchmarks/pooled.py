@@ -8,7 +8,8 @@ pools their pairs per object and prints, per object and for the mean over object
 (``batchpose.metrics.vocap_auc``, as the reports compute them) with a 95 % bootstrap interval: pairs
 redrawn with replacement within each object (``--boot`` times), so each object keeps its number of pairs.
 The target lines say whether the mean passes the paper's figures (85.7 / 72.2) and how often the
-resampled means do.
+resampled means do. The interval assumes the pairs are independent draws, as held-out frames are;
+consecutive frames of one video (ycbv_dev) are not, and their intervals come out too narrow.
 
 Usage:
     .venv/bin/python benchmarks/pooled.py RUN [RUN ...] [--boot 2000] [--seed 0]
