@@ -294,15 +294,18 @@ class TrackConfig:
     the fine pass or locator finds it. 1: always the full estimate."""
     hidden_above: float = 0.6
     """A lost object whose last confident pose is at least this fraction covered (its projected convex
-    hull) by tracked objects in front of it is estimated only every ``lost_full_every``-th frame (in full);
-    in the frames between, where it would get a quick estimate, its status is ``hidden``, naming what hides
-    it. It is estimated in every frame again as soon as less of it is covered. Estimates of a mostly hidden
-    object are slow (whole-frame SIFT and matching even for a quick one) and often wrong (1: never skip)."""
-    hidden_quick: bool = False
+    hull) by tracked objects in front of it is estimated only every ``lost_full_every``-th frame (see
+    ``hidden_quick``); in the frames between, where it would get a quick estimate, its status is
+    ``hidden``, naming what hides it. It is estimated in every frame again as soon as less of it is
+    covered. Estimates of a mostly hidden object are slow (whole-frame SIFT and matching even for a quick
+    one) and often wrong (1: never skip)."""
+    hidden_quick: bool = True
     """Make those every-``lost_full_every``-th estimates of a mostly hidden object quick ones (see
-    ``lost_full_every``). Two-object benchmark log (reports/BENCHMARKS.md, session 14): the further object's
-    cost +0.47x -> ~+0.19x the floor, ADD < 0.1 d 97.1 -> 96.7 % (the fine pass finds more of a mostly hidden
-    object). On in the ``fast`` preset."""
+    ``lost_full_every``), so that a second object in the frame costs at most 0.3x the decode + SIFT floor
+    even where one hides the other. False gives them the full estimate: on the two-object benchmark log
+    (reports/BENCHMARKS.md, session 18) the further object's cost rises from +0.2x to +0.47x the floor, and
+    the fine pass finds a mostly hidden object in a few more frames (ADD < 0.1 d 95.4 -> 95.8 % of the log's
+    pairs)."""
     hidden_retry: bool = False
     """Give those full estimates of a mostly hidden object ``features.retry_contrast_threshold``'s retry
     too. Off: the object was not found because it is hidden, not for want of contrast, and the retry (SIFT

@@ -485,15 +485,16 @@ def gelatin_library(cache_dir):
     return gelatin, build_templates.load(build_templates.main(gelatin, EstimatorConfig(), K_SYN, 640, 480, cache_dir))
 
 
-@pytest.mark.parametrize("hidden_above", [0.6, 1.0])
+@pytest.mark.parametrize(("hidden_above", "hidden_quick"), [(0.6, True), (0.6, False), (1.0, True)])
 def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
-    cracker_model, cracker_library, gelatin_library, hidden_above
+    cracker_model, cracker_library, gelatin_library, hidden_above, hidden_quick
 ):
     """The gelatin box (tracked) passes in front of the still cracker box, hiding up to ~95 % of it, and on.
     The cracker's track ends; while the gelatin box covers >= 60 % of it at its last pose, the frames that
     would get a quick estimate report it ``hidden``, naming the gelatin box; once less is covered it is
     found again and tracked. Every confident pose is right. With track.hidden_above = 1 every frame is
-    estimated."""
+    estimated. The estimates it still gets are quick ones by default (track.hidden_quick), full ones with
+    hidden_quick false; either way none is given the low-contrast retry."""
     gelatin, gel_lib = gelatin_library
     renderer, rng = get_renderer(), np.random.default_rng(11)
     bg = textured_background(rng)
@@ -505,13 +506,15 @@ def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
         frames.append(frame_of(img, i))
         visible.append(((depth > 0) & (depth_g == 0)).sum() / (depth > 0).sum())
     assert min(visible) < 0.1 and visible[0] == 1.0 and visible[-1] > 0.7
-    conf = dataclasses.replace(EstimatorConfig(), track=TrackConfig(hidden_above=hidden_above))
-    unretried = []
+    track = TrackConfig(hidden_above=hidden_above, hidden_quick=hidden_quick)
+    conf = dataclasses.replace(EstimatorConfig(), track=track)
+    unretried, hidden_and_quick = [], []
 
-    class Watched(PoseEstimator):  # records which objects the tracker spares the low-contrast retry
-        def estimate_image(self, *args, no_retry=frozenset(), **kwargs):
+    class Watched(PoseEstimator):  # records which objects the tracker spares the retry, and which are quick
+        def estimate_image(self, *args, quick=frozenset(), no_retry=frozenset(), **kwargs):
             unretried.extend(no_retry)
-            return super().estimate_image(*args, no_retry=no_retry, **kwargs)
+            hidden_and_quick.extend((name, name in quick) for name in no_retry)
+            return super().estimate_image(*args, quick=quick, no_retry=no_retry, **kwargs)
 
     est = Watched(
         conf,
@@ -537,4 +540,5 @@ def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
         assert not box[hidden[0] - 1].tracked  # the track had ended: a lost object is never skipped otherwise
     # The full estimates of the mostly hidden box get no low-contrast retry (track.hidden_retry false).
     assert set(unretried) == ({cracker_model.name} if hidden_above < 1 else set())
+    assert all(q == hidden_quick for _, q in hidden_and_quick)
     assert all(r.ok and r.tracked for r in box[-3:])
