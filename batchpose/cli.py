@@ -1,6 +1,8 @@
 """Command-line interface: ``batchpose run | convert | report | compare``.
 
-Any :class:`~batchpose.errors.BatchposeError` is printed as one line on stderr and exits with code 2.
+Any :class:`~batchpose.errors.BatchposeError`, or a file the user named that cannot be read or written, is
+printed as one line on stderr and exits with code 2; any other exception (a bug) as one line with code 1
+(the traceback with ``-v``).
 """
 
 from __future__ import annotations
@@ -49,7 +51,14 @@ def _cmd_report(args: argparse.Namespace) -> None:
 def _cmd_compare(args: argparse.Namespace) -> None:
     from batchpose import make_report
 
-    out = make_report.compare([Path(p) for p in args.run_dirs], Path(args.out))
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise BatchposeError(f"compare --out {out}: is a file, not a directory")
+    if out.is_dir() and any(out.iterdir()) and not (out / "compare.csv").is_file():
+        raise BatchposeError(
+            f"compare --out {out}: is not empty and holds no comparison (no compare.csv); give a new or empty directory"
+        )
+    out = make_report.compare([Path(p) for p in args.run_dirs], out)
     print(f"compare: {out}")
 
 
@@ -150,6 +159,20 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("batchpose: interrupted", file=sys.stderr)
         return 130
+    except OSError as e:  # a file or folder the user named that cannot be read or written
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"batchpose: error: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
+    except Exception as e:  # noqa: BLE001 - a bug: one line (the traceback with -v), not a crash dump
+        if args.verbose:
+            log.exception("internal error")
+        first = (str(e).splitlines() or [""])[0]
+        print(
+            f"batchpose: internal error: {type(e).__name__}: {first} (rerun with -v for the traceback and "
+            "please report it)",
+            file=sys.stderr,
+        )
+        return 1
     return 0
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -543,6 +544,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
@@ -683,7 +686,65 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: strong_inliers must be >= 0, got {conf.strong_inliers}")
     if not 0 < conf.gnc.gamma < 1:
         raise ConfigError(f"{where}: gnc.gamma must be in (0, 1), got {conf.gnc.gamma}")
+    _check_ranges(conf, where)
     return conf
+
+
+def _check_ranges(conf: EstimatorConfig, where: str) -> None:
+    """The numeric fields the checks above do not cover: ranges outside which a run would fail in every
+    frame, loop forever or silently do nothing."""
+    g, r, m, f, rf, fn = conf.gnc, conf.render, conf.match, conf.features, conf.refine, conf.fine
+    for key, value, ok, need in (
+        ("mesh.mm_diagonal_threshold", conf.mesh.mm_diagonal_threshold, conf.mesh.mm_diagonal_threshold > 0, "> 0"),
+        ("mesh.max_texture_px", conf.mesh.max_texture_px, conf.mesh.max_texture_px >= 16, ">= 16"),
+        ("render.width", r.width, r.width == 0 or r.width >= 16, "0 (the camera's) or >= 16"),
+        ("render.height", r.height, r.height == 0 or r.height >= 16, "0 (the camera's) or >= 16"),
+        (
+            "render.image_fractions",
+            list(r.image_fractions),
+            bool(r.image_fractions) and all(0 < x <= 1 for x in r.image_fractions),
+            "a non-empty list of values in (0, 1]",
+        ),
+        ("render.distances_m", list(r.distances_m), all(x > 0 for x in r.distances_m), "positive"),
+        ("render.znear_m", r.znear_m, 0 < r.znear_m < r.zfar_m, "positive and below render.zfar_m"),
+        ("render.min_elevation_deg", r.min_elevation_deg, -90 <= r.min_elevation_deg < 90, "in [-90, 90)"),
+        ("render.paper_azimuth_step_deg", r.paper_azimuth_step_deg, 0 < r.paper_azimuth_step_deg <= 360, "in (0, 360]"),
+        ("features.n_features", f.n_features, f.n_features >= 0, ">= 0 (0: no limit)"),
+        ("features.contrast_threshold", f.contrast_threshold, f.contrast_threshold > 0, "> 0"),
+        ("features.edge_threshold", f.edge_threshold, f.edge_threshold > 0, "> 0"),
+        ("features.sigma", f.sigma, f.sigma > 0, "> 0"),
+        ("match.prefilter_views", m.prefilter_views, m.prefilter_views >= 1, ">= 1"),
+        ("match.prefilter_ratio", m.prefilter_ratio, 0 < m.prefilter_ratio <= 1, "in (0, 1]"),
+        ("match.first_views", m.first_views, m.first_views >= 1, ">= 1"),
+        ("match.flann_trees", m.flann_trees, m.flann_trees >= 1, ">= 1"),
+        ("match.flann_checks", m.flann_checks, m.flann_checks >= 1, ">= 1"),
+        ("match.roi_margin_px", m.roi_margin_px, m.roi_margin_px >= 0, ">= 0"),
+        ("weights.w_min", conf.weights.w_min, 0 <= conf.weights.w_min <= 1, "in [0, 1]"),
+        ("gnc.ransac_reproj_px", g.ransac_reproj_px, g.ransac_reproj_px > 0, "> 0"),
+        ("gnc.ransac_iterations", g.ransac_iterations, g.ransac_iterations >= 1, ">= 1"),
+        ("gnc.ransac_confidence", g.ransac_confidence, 0 < g.ransac_confidence < 1, "in (0, 1)"),
+        ("gnc.kappa", g.kappa, g.kappa > 0, "> 0"),
+        ("gnc.epsilon", g.epsilon, g.epsilon > 0, "> 0"),
+        ("gnc.tau_gnc", g.tau_gnc, 0 < g.tau_gnc <= 1, "in (0, 1]"),
+        ("gnc.tau_geom", g.tau_geom, 0 <= g.tau_geom <= 1, "in [0, 1]"),
+        ("gnc.min_inliers", g.min_inliers, g.min_inliers >= 4, ">= 4 (PnP)"),
+        ("gnc.mu_final_px", g.mu_final_px, g.mu_final_px > 0, "> 0"),
+        ("gnc.max_iterations", g.max_iterations, g.max_iterations >= 1, ">= 1"),
+        ("refine.iterations", rf.iterations, rf.iterations >= 0, ">= 0"),
+        ("refine.radius_px", rf.radius_px, rf.radius_px > 0, "> 0"),
+        ("refine.ratio", rf.ratio, 0 < rf.ratio <= 1, "in (0, 1]"),
+        ("refine.mu_final_px", rf.mu_final_px, rf.mu_final_px > 0, "> 0"),
+        ("refine.hypotheses", rf.hypotheses, rf.hypotheses >= 1, ">= 1"),
+        ("fine.margin", fn.margin, fn.margin >= 0, ">= 0"),
+        ("fine.margin_px", fn.margin_px, fn.margin_px >= 0, ">= 0"),
+        ("fine.prefilter_views", fn.prefilter_views, fn.prefilter_views >= 1, ">= 1"),
+        ("fine.cluster_radius_px", fn.cluster_radius_px, fn.cluster_radius_px > 0, "> 0"),
+        ("min_matches", conf.min_matches, conf.min_matches >= 4, ">= 4 (PnP)"),
+        ("confidence_inliers", conf.confidence_inliers, conf.confidence_inliers > 0, "> 0"),
+        ("confidence_residual_px", conf.confidence_residual_px, conf.confidence_residual_px > 0, "> 0"),
+    ):
+        if not ok:
+            raise ConfigError(f"{where}: {key} must be {need}, got {value}")
 
 
 def to_dict(conf: Any) -> dict:
@@ -719,6 +780,8 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
             raise ConfigError(f"--set {item!r}: cannot parse value: {e}") from None
         node = data
         parts = key.strip().split(".")
+        if not all(parts):
+            raise ConfigError(f"--set {item!r}: the key before '=' is empty or has an empty part, e.g. gnc.kappa=3")
         for p in parts[:-1]:
             node = node.setdefault(p, {})
             if not isinstance(node, dict):
@@ -734,6 +797,8 @@ def load_yaml(path: Path) -> dict:
         raise ConfigError(f"{path}: file not found")
     try:
         data = yaml.safe_load(path.read_text())
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.object[e.start]:#04x} at offset {e.start})") from None
     except yaml.YAMLError as e:
         msg = str(e).replace("\n", " ")
         raise ConfigError(f"{path}: not valid YAML: {msg}") from None

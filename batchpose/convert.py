@@ -69,8 +69,12 @@ def main(src: Path, out: Path, fmt: str, overwrite: bool = False) -> Path:
         raise ConfigError(f"convert --format: unknown format {fmt!r} (expected one of {', '.join(FORMATS)})")
     if not src.is_dir():
         raise DataError(f"{src}: data set folder does not exist")
+    if out.is_dir():
+        raise ConfigError(f"{out}: is a directory; give the path of the .mcap file to write")
     if out.exists() and not overwrite:
         raise ConfigError(f"{out}: already exists (pass --overwrite to replace it)")
+    if any(p.exists() and not p.is_dir() for p in out.parents):
+        raise ConfigError(f"{out}: a parent of it is a file, not a directory")
     source: FrameSource = open_frames({"format": fmt, "root": str(src)}, base_dir=Path.cwd())
     out.parent.mkdir(parents=True, exist_ok=True)
     total = source.count()

@@ -155,6 +155,7 @@ def main(
     chunk_size: int = 2,
     max_pairs: int | None = None,
     threads: int | None = None,
+    frame_ids: set[str] | None = None,
 ) -> Path:
     """Estimate poses for all frames of ``source``; returns ``run_dir/poses.parquet``.
 
@@ -166,6 +167,8 @@ def main(
         backend: joblib backend ("loky", or "dask" inside a ``dask.distributed`` client context).
         max_pairs: stop after about this many newly estimated pairs (used to test resuming).
         threads: OpenCV / renderer threads per worker (see :func:`limit_threads`; None: their defaults).
+        frame_ids: the frames this run covers (``frames.parquet``); shards of other frames (an earlier
+            run with a larger ``--limit``) stay on disk but are left out of ``poses.parquet``.
     """
     run_dir = Path(run_dir)
     out = run_dir / "poses.parquet"
@@ -179,8 +182,9 @@ def main(
         p.unlink()
     done = done_pairs(shard_dir)
     if out.is_file() and not overwrite and not _pending(source, targets_mode, done, limit, lib_dirs):
-        log.info("Skipping estimation: %s is complete", out)
-        return out
+        if frame_ids is None or set(pd.read_parquet(out, columns=["frame_id"])["frame_id"]) <= frame_ids:
+            log.info("Skipping estimation: %s is complete", out)
+            return out
     if done:
         log.info("Resuming: %d (frame, object) pairs already estimated", len(done))
     objects = list(lib_dirs)
@@ -215,6 +219,8 @@ def main(
     finally:
         bar.close()
     df = merge_shards(shard_dir)
+    if frame_ids is not None:
+        df = df[df["frame_id"].isin(frame_ids)].reset_index(drop=True)
     write_parquet_atomic(df, out)
     counts = Counter(df["status"])
     ok = counts.pop("ok", 0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 from pathlib import Path
@@ -9,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from tqdm import tqdm
+
+from batchpose.errors import DataError
 
 log = logging.getLogger("batchpose")
 
@@ -18,6 +21,25 @@ def write_parquet_atomic(df: pd.DataFrame, path: Path) -> Path:
     df.to_parquet(tmp, index=False)
     os.replace(tmp, path)
     return path
+
+
+def _utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:  # a file name's undecodable bytes, kept as surrogates
+        return False
+    return True
+
+
+def _printable(text: str) -> str:
+    return os.fsencode(text).decode("utf-8", "backslashreplace")
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None) -> Path:
@@ -30,9 +52,13 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     """
     out = Path(run_dir) / "frames.parquet"
     gt_out = Path(run_dir) / "gt.parquet"
-    if out.is_file() and gt_out.is_file() and not overwrite:
+    # What the index covers: a rerun with another --limit indexes the frames again (and estimates only
+    # the pairs it has not yet).
+    stamp, covers = Path(run_dir) / "ingest.json", {"limit": limit}
+    if out.is_file() and gt_out.is_file() and not overwrite and _read_json(stamp) == covers:
         log.info("Skipping ingest: %s exists", out)
         return out
+    stamp.unlink(missing_ok=True)
     rows, gt_rows = [], []
     wanted = set(objects)
     total = source.count()
@@ -41,6 +67,9 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     for i, f in enumerate(tqdm(source, total=total, desc="ingest", unit="frame", leave=False, disable=None)):
         if limit is not None and i >= limit:
             break
+        for text in (f.frame_id, f.source):
+            if not _utf8(text):
+                raise DataError(f"{_printable(text)}: the name is not valid UTF-8 text; rename it")
         rows.append(
             {
                 "frame_id": f.frame_id,
@@ -68,5 +97,8 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     gt = pd.DataFrame(gt_rows, columns=["frame_id", "obj_name", "obj_id", "R", "t_m"])
     write_parquet_atomic(gt, gt_out)
     write_parquet_atomic(frames, out)
+    tmp = stamp.with_name(stamp.name + ".tmp")
+    tmp.write_text(json.dumps(covers))
+    os.replace(tmp, stamp)
     log.info("ingested %d frames, %d ground-truth poses of %s", len(frames), len(gt), ", ".join(objects))
     return out

@@ -63,6 +63,17 @@ class Manifest:
         }
 
 
+def _check_template(path: Path, key: str, tpl: str | None) -> None:
+    """``models.mesh`` / ``models.points`` may use ``{name}`` (the object's name) and nothing else."""
+    if tpl is None:
+        return
+    try:
+        tpl.format(name="x")
+    except (KeyError, IndexError, ValueError) as e:
+        why = f"unknown field {{{e.args[0]}}}" if isinstance(e, KeyError) else str(e)
+        raise ConfigError(f"{path}: models.{key} {tpl!r}: {why} (only {{name}} may be used)") from None
+
+
 def load_manifest(path: Path) -> Manifest:
     """Read and check a manifest; every problem is a one-line ConfigError naming the file and key."""
     path = Path(path).resolve()
@@ -87,9 +98,14 @@ def load_manifest(path: Path) -> Manifest:
     unknown = sorted(set(models) - _MODEL_KEYS)
     if unknown:
         raise ConfigError(f"{path}: models: unknown key(s) {', '.join(unknown)} (expected root, mesh, points)")
+    for key in _MODEL_KEYS:
+        if key in models and not isinstance(models[key], str):
+            raise ConfigError(f"{path}: models.{key} must be a string (a path), got {models[key]!r}")
     root = (base / models.get("root", ".")).resolve()
     mesh_tpl = models.get("mesh", "{name}/textured.obj")
     points_tpl = models.get("points")
+    for key, tpl in (("mesh", mesh_tpl), ("points", points_tpl)):
+        _check_template(path, key, tpl)
     objects = data["objects"]
     if not isinstance(objects, list) or not objects or not all(isinstance(o, str) for o in objects):
         raise ConfigError(f"{path}: objects must be a non-empty list of object names")

@@ -19,7 +19,8 @@ import yaml
 
 from batchpose import build_templates, estimate_poses, export_mcap, ingest_frames
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml, to_dict
-from batchpose.errors import ConfigError
+from batchpose.errors import CameraError, ConfigError
+from batchpose.frames import Camera
 from batchpose.manifest import load_manifest
 from batchpose.mesh import load_mesh
 
@@ -52,6 +53,62 @@ def versions() -> dict:
     return out
 
 
+def _previous_run(run_dir: Path) -> dict | None:
+    """The config of the run in ``run_dir`` (None when there is none yet); ConfigError when ``run_dir`` is a
+    file, or a directory with other files in it than a run's."""
+    if not run_dir.exists():
+        return None
+    if not run_dir.is_dir():
+        raise ConfigError(f"--out {run_dir}: is a file, not a directory")
+    saved = run_dir / "config.yaml"
+    if not saved.is_file():
+        if any(run_dir.iterdir()):
+            raise ConfigError(
+                f"--out {run_dir}: is not empty and holds no batchpose run (no config.yaml); "
+                "give a new or empty directory"
+            )
+        return None
+    try:
+        previous = yaml.safe_load(saved.read_text())
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as e:
+        raise ConfigError(
+            f"{saved}: not a readable batchpose run config ({type(e).__name__}); use another --out"
+        ) from None
+    if not isinstance(previous, dict) or "pipeline" not in previous:
+        raise ConfigError(f"{saved}: not a batchpose run config (no pipeline section); use another --out")
+    return previous
+
+
+def _check_annotated(gt: pd.DataFrame, objects: list[str], manifest: Path, limit: int | None) -> None:
+    """``targets: annotations`` estimates the objects each frame's ground truth lists: none listed is an
+    error (nothing would be estimated), some never listed a warning."""
+    missing = [o for o in objects if o not in set(gt["obj_name"])]
+    if not missing:
+        return
+    frames = f"the first {limit} frames" if limit is not None else "the data set"
+    if len(missing) == len(objects):
+        raise ConfigError(
+            f"{manifest}: no ground truth in {frames} lists {', '.join(missing)}, so `targets: annotations` has "
+            "nothing to estimate; use `targets: all` to look for the objects in every frame"
+        )
+    log.warning("no ground truth in %s lists %s: not estimated (targets: annotations)", frames, ", ".join(missing))
+
+
+def _template_camera(frames_index: pd.DataFrame, manifest: Path) -> tuple[np.ndarray, int, int]:
+    """K, width and height of the first frame with a usable calibration (the templates are rendered with
+    it; frames with a broken one fail on their own when estimated)."""
+    first_error = None
+    for row in frames_index.itertuples():
+        K = np.asarray(row.K, float).reshape(3, 3)
+        try:
+            Camera(K, int(row.width), int(row.height)).validate(str(row.frame_id))
+        except CameraError as e:
+            first_error = first_error or e
+            continue
+        return K, int(row.width), int(row.height)
+    raise CameraError(f"{manifest}: no frame has a usable camera calibration (first: {first_error})")
+
+
 def _write_text_atomic(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
@@ -69,7 +126,7 @@ def _backend(backend: str, scheduler: str | None, jobs: int):
     if scheduler:
         try:
             client = Client(scheduler, timeout="20s")
-        except OSError as e:
+        except (OSError, ValueError) as e:  # ValueError: not an address
             raise ConfigError(f"--scheduler {scheduler}: cannot connect to the Dask scheduler ({e})") from None
         cluster = None
     else:
@@ -108,23 +165,35 @@ def main(
     conf_dict = apply_overrides(load_yaml(Path(pipeline)), list(overrides))
     conf = load_estimator_config(conf_dict, where=str(pipeline))
     conf_dict = to_dict(conf)
+    if limit is not None and limit < 1:
+        raise ConfigError(f"--limit must be >= 1, got {limit}")
     man = load_manifest(Path(manifest))
     run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    for flag, value in (("--out", run_dir), ("--cache", cache_dir)):
+        try:
+            str(value or "").encode("utf-8")
+        except UnicodeEncodeError:
+            raise ConfigError(f"{flag}: the path is not valid UTF-8 text; choose another") from None
     cache_dir = Path(cache_dir) if cache_dir else build_templates.default_cache_dir()
+    if cache_dir.exists() and not cache_dir.is_dir():
+        raise ConfigError(f"--cache {cache_dir}: is a file, not a directory")
 
-    # A run directory belongs to one config and one manifest: refuse to mix results.
+    # A run directory belongs to one config and one manifest: refuse to mix results, and never write over
+    # files that are not a run's.
     saved = run_dir / "config.yaml"
     resolved = {"pipeline": conf_dict, "manifest": man.to_dict()}
-    if saved.is_file() and not overwrite:
-        previous = yaml.safe_load(saved.read_text())
-        if previous != json.loads(json.dumps(resolved)):
-            raise ConfigError(
-                f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
-            )
-    _write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False))
-    _write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2))
-    _write_text_atomic(run_dir / "manifest.yaml", yaml.safe_dump(man.to_dict(), sort_keys=False))
+    previous = _previous_run(run_dir)
+    if previous is not None and not overwrite and previous != json.loads(json.dumps(resolved)):
+        raise ConfigError(
+            f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
+        )
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        _write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False))
+        _write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2))
+        _write_text_atomic(run_dir / "manifest.yaml", yaml.safe_dump(man.to_dict(), sort_keys=False))
+    except OSError as e:
+        raise ConfigError(f"--out {run_dir}: cannot write there ({e.strerror or e})") from None
 
     source = open_frames(man.frames, man.path.parent)
     log.info("data: %s", source.describe())
@@ -134,11 +203,11 @@ def main(
     frames_index = pd.read_parquet(run_dir / "frames.parquet")
     if frames_index.empty:
         raise ConfigError(f"{man.path}: the data set has no frames")
-    first = frames_index.iloc[0]
-    K0 = np.asarray(first["K"], float).reshape(3, 3)
+    if man.targets == "annotations":
+        _check_annotated(pd.read_parquet(run_dir / "gt.parquet"), objects, man.path, limit)
+    K0, width, height = _template_camera(frames_index, man.path)
     models, lib_dirs, obj_ids = {}, {}, {}
     t0 = time.perf_counter()
-    width, height = int(first["width"]), int(first["height"])
     for spec in man.objects:
         models[spec.name] = load_mesh(spec.mesh, conf.mesh, name=spec.name)
         obj_ids[spec.name] = source.obj_id(spec.name)
@@ -178,6 +247,7 @@ def main(
             max_pairs=max_pairs,
             # workers on this machine share its cores; a remote cluster's workers keep their defaults
             threads=None if scheduler else estimate_poses.threads_per_worker(jobs),
+            frame_ids=set(frames_index["frame_id"]),
         )
     if max_pairs is not None and poses_path.name != "poses.parquet":
         return run_dir  # stopped early on purpose (resume tests)

@@ -132,6 +132,25 @@ def _cli(*args, cwd=ROOT):
         (str(DEMO), "gnc:\n  kapa: 3\n", "unknown key kapa"),
         (str(DEMO), "match:\n  direction: sideways\n", "match.direction = 'sideways'"),
         (str(DEMO), "depth:\n  enabled: true\n  level: 0\n", "depth.level must be >= 1, got 0"),
+        (str(DEMO), "gnc:\n  ransac_confidence: 5\n", "gnc.ransac_confidence must be in (0, 1), got 5.0"),
+        (str(DEMO), "gnc:\n  kappa: .nan\n", "gnc.kappa: expected a finite number, got nan"),
+        (str(DEMO), "match:\n  flann_checks: 0\n", "match.flann_checks must be >= 1, got 0"),
+        (str(DEMO), "render:\n  image_fractions: []\n", "render.image_fractions must be a non-empty list"),
+        (str(DEMO), "# caf\xe9\n", "not UTF-8 text (byte 0xe9"),
+        (
+            {
+                "frames": {"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")},
+                "models": {"root": str(ROOT / "demo_data/models"), "mesh": "{nme}/textured.obj"},
+                "objects": ["003_cracker_box"],
+            },
+            "",
+            "models.mesh '{nme}/textured.obj': unknown field {nme} (only {name} may be used)",
+        ),
+        (
+            {"frames": {"format": "ycbv", "root": "."}, "models": {"root": 123}, "objects": ["003_cracker_box"]},
+            "",
+            "models.root must be a string (a path), got 123",
+        ),
     ],
 )
 def test_bad_manifest_or_pipeline_is_one_line_exit_2(tmp_path, manifest, pipeline_extra, expect):
@@ -142,7 +161,7 @@ def test_bad_manifest_or_pipeline_is_one_line_exit_2(tmp_path, manifest, pipelin
     elif manifest == "missing.yaml":
         manifest = str(tmp_path / "missing.yaml")
     pipeline = tmp_path / "p.yaml"
-    pipeline.write_text("method: gnc_pose\n" + pipeline_extra)
+    pipeline.write_bytes(("method: gnc_pose\n" + pipeline_extra).encode("latin-1"))
     r = _cli(
         "run",
         str(pipeline),
@@ -287,3 +306,66 @@ def test_a_missing_depth_topic_is_one_line_exit_2(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "depth topic '/camera/dpeth' not found" in lines[0], r.stderr
     assert "/camera/depth" in lines[0]  # the error lists the image topics there are
+
+
+def _one_line_exit_2(r, expect: str) -> None:
+    """Exit 2, no traceback, and the error on one line (after any progress lines)."""
+    assert r.returncode == 2, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert "Traceback" not in r.stderr and last.startswith("batchpose: error: "), r.stderr
+    assert expect in last, last
+
+
+def test_an_out_folder_with_the_users_files_is_never_written_to(tmp_path):
+    """--out that is a file, or a folder of other files than a run's, is refused (even with --overwrite)
+    before anything is written; so is a run folder whose config.yaml is not one."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "poses.csv").write_text("my own numbers")
+    args = ["run", str(PIPELINE), "--manifest", str(DEMO), "--cache", str(tmp_path / "cache"), "--limit", "1"]
+    for extra in ([], ["--overwrite"]):
+        r = _cli(*args, "--out", str(mine), *extra)
+        _one_line_exit_2(r, "is not empty and holds no batchpose run (no config.yaml)")
+    assert [p.name for p in mine.iterdir()] == ["poses.csv"] and (mine / "poses.csv").read_text() == "my own numbers"
+    _one_line_exit_2(_cli(*args, "--out", str(mine / "poses.csv")), "is a file, not a directory")
+    (mine / "config.yaml").write_text("pipeline: [unclosed\n")
+    _one_line_exit_2(_cli(*args, "--out", str(mine)), "config.yaml: not a readable batchpose run config")
+    _one_line_exit_2(_cli(*args[:-2], "--limit", "0", "--out", str(tmp_path / "new")), "--limit must be >= 1, got 0")
+    _one_line_exit_2(_cli(*args, "--out", str(tmp_path / "new"), "--set", "=3"), "the key before '=' is empty")
+    cmp_out = tmp_path / "page"
+    cmp_out.mkdir()
+    (cmp_out / "index.html").write_text("my page")
+    _one_line_exit_2(_cli("compare", str(tmp_path), "--out", str(cmp_out)), "holds no comparison (no compare.csv)")
+    assert (cmp_out / "index.html").read_text() == "my page"
+
+
+def test_objects_no_frame_lists_are_one_line_exit_2(tmp_path):
+    """targets: annotations with no frame listing the object would estimate nothing: say so."""
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text(DEMO.read_text().replace("[003_cracker_box, 009_gelatin_box]", "[003_cracker_box]"))
+    manifest.write_text(manifest.read_text().replace("../demo_data", str(ROOT / "demo_data")))
+    r = _cli(
+        "run", str(PIPELINE), "--manifest", str(manifest), "--out", str(tmp_path / "o"), "--limit", "1",
+        "--cache", str(tmp_path / "cache"),
+    )  # fmt: skip
+    _one_line_exit_2(r, "no ground truth in the first 1 frames lists 003_cracker_box")
+
+
+@pytest.mark.slow
+def test_a_rerun_with_another_limit_covers_exactly_its_frames(demo_run, tmp_path, cache_dir):
+    """--limit 1, then no limit, then --limit 2 in the same --out: each run's frames, ground truth, poses
+    and report cover exactly its frames; the pairs already estimated are not estimated again."""
+    out = tmp_path / "grow"
+    run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, jobs=1, limit=1)
+    assert len(pd.read_parquet(out / "frames.parquet")) == 1
+    run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, jobs=1)
+    assert len(pd.read_parquet(out / "frames.parquet")) == 5
+    pd.testing.assert_frame_equal(_csv(out / "poses.csv"), _csv(demo_run / "poses.csv"))
+    assert len(pd.read_csv(out / "report" / "frames.csv")) == 5
+    shards = sorted((out / "shards").glob("shard-*.parquet"))
+    run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, jobs=1, limit=2)
+    assert sorted((out / "shards").glob("shard-*.parquet")) == shards  # nothing estimated again
+    kept = set(pd.read_parquet(out / "frames.parquet")["frame_id"])
+    assert len(kept) == 2 and set(pd.read_parquet(out / "poses.parquet")["frame_id"]) <= kept
+    assert set(pd.read_csv(out / "report" / "frames.csv")["frame_id"]) <= kept
+    assert len(pd.read_csv(out / "poses.csv")) == len(pd.read_parquet(out / "gt.parquet"))
