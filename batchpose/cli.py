@@ -68,7 +68,7 @@ def _cmd_score(args: argparse.Namespace) -> None:
     run = make_report.load_run(Path(args.run_dir))
     if run.gt is None or run.gt.empty:
         raise BatchposeError(f"{args.run_dir}: the run has no ground truth (gt.parquet) to score against")
-    points, diameters = make_report.load_model_points(run.objects, sorted(run.objects))
+    points, diameters = run.model_points(sorted(run.objects))
     obj_names = {int(v["obj_id"]): k for k, v in run.objects.items()}
     _, summary = bop.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames)
     cols = [c for c in ("obj_name", "n", "adds_auc", "add_auc", "adds_recall", "add_recall") if c in summary]

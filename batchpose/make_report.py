@@ -32,6 +32,7 @@ import pandas as pd
 import yaml
 
 from batchpose import metrics
+from batchpose.config import MeshConfig, load_estimator_config
 from batchpose.errors import BatchposeError, DataError, MeshError
 from batchpose.poses import STAGES, STATUSES, row_cam_from_model
 
@@ -70,6 +71,10 @@ PAPER_NOTE = (
 GALLERY_K = 4
 #: Points sampled from the mesh when an object has no points file (seeded, reproducible).
 MESH_SAMPLES = 2000
+#: Largest factor by which the diameter of an object's model points (points file, or mesh samples) may differ
+#: from the ``diameter_m`` the run measured on its mesh. On the YCB models the points span 0.99-1.0 of it;
+#: a unit slip is a factor of 10 (cm) or 1000 (mm), a truncated or foreign points file usually more than 1.5.
+DIAMETER_TOLERANCE = 1.5
 #: Thresholds of the plotted accuracy curves, metres (the toolbox's 0..0.1 m range).
 CURVE_THRESHOLDS = np.linspace(0.0, 0.1, 401)
 COLOR_EST = (255, 140, 0)  # RGB orange
@@ -92,10 +97,23 @@ class RunData:
     versions: dict[str, Any] = field(default_factory=dict)
     manifest: dict[str, Any] | None = None
     notes: list[str] = field(default_factory=list)
+    mesh_conf: MeshConfig = field(default_factory=MeshConfig)
+    """The run's ``pipeline.mesh`` options (from ``config.yaml``): how its meshes were brought to metres."""
+    _models: dict[str, tuple[np.ndarray, float]] = field(default_factory=dict, repr=False)
 
     @property
     def has_gt(self) -> bool:
         return self.gt is not None and len(self.gt) > 0
+
+    def model_points(self, names: Iterable[str]) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+        """:func:`load_model_points` with this run's objects.json and mesh options; each object read once."""
+        names = sorted(set(names))
+        todo = [n for n in names if n not in self._models]
+        if todo:
+            where = str(self.run_dir / "objects.json")
+            points, diameters = load_model_points(self.objects, todo, where=where, mesh_conf=self.mesh_conf)
+            self._models.update({n: (points[n], diameters[n]) for n in todo})
+        return {n: self._models[n][0] for n in names}, {n: self._models[n][1] for n in names}
 
 
 def _read_parquet(path: Path, required: Iterable[str]) -> pd.DataFrame:
@@ -138,6 +156,7 @@ def load_run(run_dir: Path) -> RunData:
     run = RunData(run_dir=run_dir, poses=poses, gt=gt, frames=frames, objects=objects)
     if (run_dir / "config.yaml").is_file():
         run.config_text = (run_dir / "config.yaml").read_text(errors="replace")
+        run.mesh_conf = _mesh_config(run_dir / "config.yaml", run.config_text, run.notes)
     if (run_dir / "versions.json").is_file():
         try:
             run.versions = json.loads((run_dir / "versions.json").read_text())
@@ -151,8 +170,30 @@ def load_run(run_dir: Path) -> RunData:
     return run
 
 
-def _sample_mesh(mesh_path: Path) -> np.ndarray:
+def _mesh_config(path: Path, text: str, notes: list[str]) -> MeshConfig:
+    """The ``pipeline.mesh`` section of a run's ``config.yaml`` (defaults when the file has none).
+
+    Raises:
+        ConfigError: the section is malformed (unknown key, bad value).
+    """
+    try:
+        saved = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        msg = str(e).replace("\n", " ")
+        notes.append(f"config.yaml is not valid YAML ({msg}); meshes scored with the default mesh options")
+        return MeshConfig()
+    pipeline = saved.get("pipeline") if isinstance(saved, dict) else None
+    section = pipeline.get("mesh") if isinstance(pipeline, dict) else None
+    if section is None:
+        return MeshConfig()
+    return load_estimator_config({"mesh": section}, where=f"{path}: pipeline").mesh
+
+
+def _sample_mesh(mesh_path: Path, mesh_conf: MeshConfig = MeshConfig()) -> np.ndarray:
+    """(MESH_SAMPLES, 3) seeded surface samples of a mesh, metres: scaled exactly as the estimator's load_mesh."""
     import trimesh
+
+    from batchpose.mesh import unit_scale
 
     try:
         try:
@@ -161,33 +202,103 @@ def _sample_mesh(mesh_path: Path) -> np.ndarray:
             mesh = trimesh.load(mesh_path, force="mesh", process=False)
     except (OSError, ValueError, KeyError, IndexError, AttributeError) as e:  # trimesh's loaders vary
         raise MeshError(f"{mesh_path}: cannot load mesh to sample model points ({e})") from None
-    if len(mesh.faces) == 0:
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise MeshError(f"{mesh_path}: mesh has no faces to sample model points from")
+    scale = unit_scale(mesh_path, mesh.bounds, mesh_conf)
+    if scale != 1.0:
+        mesh.apply_scale(scale)
     pts, _ = trimesh.sample.sample_surface(mesh, MESH_SAMPLES, seed=0)
     return np.asarray(pts, dtype=np.float64)
 
 
-def load_model_points(
-    objects: Mapping[str, Mapping[str, Any]], names: Iterable[str], where: str = "objects.json"
-) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """Model points and diameters of the named objects.
+def _points_to_metres(pts: np.ndarray, diameter_m: float | None, mesh_conf: MeshConfig, label: str) -> np.ndarray:
+    """Scale a points file's (N, 3) coordinates to metres, by agreement with the object's mesh.
 
-    Points come from each object's ``points`` file (xyz text, metres) or, when it is null, from
-    :data:`MESH_SAMPLES` seeded surface samples of its ``mesh``.
+    The estimator never reads the points file, so its units are decided against the mesh the estimator used:
+    the points are taken as metres when their diameter matches ``diameter_m`` (the run's metre diameter of
+    the mesh), as millimetres (scaled by 0.001, the estimator's factor) when it matches 1000 times that, and
+    refused otherwise. Without a ``diameter_m`` the mesh rule (:func:`batchpose.mesh.unit_scale`) applies to
+    the points' own bounding box.
+
+    Raises:
+        DataError: the points match neither scale, or are millimetres under ``mesh.on_millimetres: refuse``.
+        MeshError: no ``diameter_m`` and the points look like millimetres under ``on_millimetres: refuse``.
+    """
+    from batchpose.mesh import diameter, unit_scale
+
+    if diameter_m is None:
+        return pts * unit_scale(label, np.stack([pts.min(axis=0), pts.max(axis=0)]), mesh_conf)
+    span = diameter(pts)
+    scale = next((s for s in (1.0, 0.001) if _agrees(span * s, diameter_m)), None)
+    if scale is None:
+        raise DataError(
+            f"{label}: the points span {span:.4g} units but the object's mesh is {diameter_m:.4g} m across; "
+            "they are neither in metres nor in millimetres of that mesh (wrong units or another object)"
+        )
+    if scale != 1.0:
+        if mesh_conf.units == "auto" and mesh_conf.on_millimetres == "refuse":
+            raise DataError(
+                f"{label}: the points span {span:.1f} units for a {diameter_m:.3f} m object, so they look like "
+                "millimetres; convert them to metres or set mesh.on_millimetres: convert"
+            )
+        log.warning(
+            "%s: the points span %.1f units for a %.3f m object, so they look like millimetres; scaling by 0.001",
+            label,
+            span,
+            diameter_m,
+        )
+    return pts * scale
+
+
+def _agrees(span_m: float, diameter_m: float) -> bool:
+    return diameter_m / DIAMETER_TOLERANCE <= span_m <= diameter_m * DIAMETER_TOLERANCE
+
+
+def _entry_diameter(entry: Mapping[str, Any], label: str) -> float | None:
+    """An objects.json entry's ``diameter_m`` (metres), None when absent or null."""
+    diam = entry.get("diameter_m")
+    if diam is None:
+        return None
+    try:
+        diam = float(diam)
+    except (TypeError, ValueError):
+        diam = float("nan")
+    if not (np.isfinite(diam) and diam > 0):
+        raise DataError(f"{label}.diameter_m: expected a positive number of metres, got {entry.get('diameter_m')!r}")
+    return diam
+
+
+def load_model_points(
+    objects: Mapping[str, Mapping[str, Any]],
+    names: Iterable[str],
+    where: str = "objects.json",
+    mesh_conf: MeshConfig = MeshConfig(),
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Model points and diameters of the named objects, in metres as the estimator saw the object.
+
+    Points come from each object's ``points`` file (xyz text) or, when it is null, from :data:`MESH_SAMPLES`
+    seeded surface samples of its ``mesh``. A mesh is scaled by the estimator's units rule
+    (:func:`batchpose.mesh.unit_scale` with ``mesh_conf``, the run's ``pipeline.mesh``); a points file is
+    taken as metres or millimetres by agreement with the mesh's ``diameter_m`` (see :func:`_points_to_metres`).
+    Either way the points must span the object's ``diameter_m`` to within :data:`DIAMETER_TOLERANCE`.
 
     Returns:
         ``(points, diameters)``: obj_name -> (N, 3) float64 metres; obj_name -> diameter, metres (the
-        ``diameter_m`` entry, or the largest pairwise distance of the points when it is missing).
+        ``diameter_m`` entry, or the diameter of the points when it is missing).
 
     Raises:
-        DataError: an object is not listed or its points file is unreadable. MeshError: unreadable mesh.
+        DataError: an object is not listed, its points file is unreadable, or its points disagree in scale
+            with its mesh. MeshError: unreadable mesh, or a millimetre mesh under ``on_millimetres: refuse``.
     """
+    from batchpose.mesh import diameter
+
     points: dict[str, np.ndarray] = {}
     diameters: dict[str, float] = {}
     for name in sorted(set(names)):
         entry = objects.get(name)
         if entry is None:
             raise DataError(f"{where}: object {name!r} is not listed (needed for its model points)")
+        diam = _entry_diameter(entry, f"{where}: {name}")
         if entry.get("points"):
             path = Path(entry["points"])
             try:
@@ -196,18 +307,24 @@ def load_model_points(
                 raise DataError(f"{where}: {name}.points: cannot read {path} ({e})") from None
             if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
                 raise DataError(f"{where}: {name}.points: {path} must hold x y z per line, got {pts.shape}")
-            pts = pts[:, :3]
+            if not np.all(np.isfinite(pts[:, :3])):
+                raise DataError(f"{where}: {name}.points: {path} has NaN or infinite coordinates")
+            pts = _points_to_metres(pts[:, :3], diam, mesh_conf, f"{where}: {name}.points: {path}")
         elif entry.get("mesh"):
-            pts = _sample_mesh(Path(entry["mesh"]))
+            mesh_path = Path(entry["mesh"])
+            pts = _sample_mesh(mesh_path, mesh_conf)
+            span = diameter(pts)
+            if diam is not None and not _agrees(span, diam):
+                raise DataError(
+                    f"{where}: {name}: the mesh {mesh_path}, scaled by the run's mesh options, spans "
+                    f"{span:.4g} m but the run measured it {diam:.4g} m across (mesh changed since the run, or "
+                    "different mesh options)"
+                )
         else:
             raise DataError(f"{where}: {name}: needs a 'points' file or a 'mesh'")
         points[name] = pts
-        diam = entry.get("diameter_m")
-        if diam is None or not np.isfinite(float(diam)) or float(diam) <= 0:
-            from scipy.spatial.distance import pdist
-
-            sub = pts[:: max(1, len(pts) // 2000)]
-            diam = float(pdist(sub).max()) if len(sub) > 1 else 0.0
+        if diam is None:
+            diam = diameter(pts)
             log.warning("%s: %s has no diameter_m; using %.4f m from its points", where, name, diam)
         diameters[name] = float(diam)
     return points, diameters
@@ -624,7 +741,7 @@ def _gallery(run: RunData, per_instance: pd.DataFrame | None) -> tuple[list[dict
         return [], "no estimates to show"
     names = {c.obj_name for c in cases}
     try:
-        points, _ = load_model_points(run.objects, names, where=str(run.run_dir / "objects.json"))
+        points, _ = run.model_points(names)
     except BatchposeError as e:
         return [], f"no model points to draw ({e})"
     frames, note = _fetch_frames(run, {c.frame_id for c in cases})
@@ -843,7 +960,7 @@ def _write_csv(df: pd.DataFrame, path: Path) -> None:
 
 
 def _score(run: RunData) -> tuple[pd.DataFrame, pd.DataFrame]:
-    points, diameters = load_model_points(run.objects, run.gt["obj_name"], where=str(run.run_dir / "objects.json"))
+    points, diameters = run.model_points(run.gt["obj_name"])
     per_instance, summary = metrics.score(run.poses, run.gt, points, diameters)
     return per_instance, _paper_columns(summary)
 

@@ -115,6 +115,39 @@ def _limit_texture(mesh: trimesh.Trimesh, max_px: int) -> None:
             setattr(mat, attr, img.resize(size, Image.LANCZOS))
 
 
+def unit_scale(path: Path, bounds: np.ndarray, conf: MeshConfig = MeshConfig()) -> float:
+    """Factor that brings a mesh file's coordinates to metres: the units rule of :func:`load_mesh`.
+
+    Scorers that read a run's meshes without texture (model points for ADD / ADD-S) call this so that they
+    scale a mesh exactly as the estimator did.
+
+    Args:
+        path: the mesh file (named in the warning and the error).
+        bounds: (2, 3) [min, max] corners of the mesh's bounding box, file units (``trimesh.Trimesh.bounds``).
+        conf: ``units``, ``on_millimetres`` and ``mm_diagonal_threshold`` are used.
+
+    Returns:
+        1.0, or 0.001 for a millimetre mesh (``units: mm``, or ``auto`` with a diagonal above the threshold).
+
+    Raises:
+        MeshError: a millimetre mesh under ``units: auto`` with ``on_millimetres: refuse``.
+    """
+    bounds = np.asarray(bounds, dtype=np.float64)
+    if bounds.shape != (2, 3):
+        raise ValueError(f"bounds must have shape (2, 3), got {bounds.shape}")
+    diag = float(np.linalg.norm(bounds[1] - bounds[0]))
+    units = conf.units
+    if units == "auto" and diag > conf.mm_diagonal_threshold:
+        if conf.on_millimetres == "refuse":
+            raise MeshError(
+                f"{path}: bounding-box diagonal is {diag:.1f} units, so the mesh looks like millimetres; "
+                "convert it to metres or set mesh.on_millimetres: convert"
+            )
+        log.warning("%s: bounding-box diagonal %.1f looks like millimetres; scaling by 0.001", path, diag)
+        units = "mm"
+    return 0.001 if units == "mm" else 1.0
+
+
 def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = None) -> ObjectModel:
     """Load a textured mesh and bring it to metres.
 
@@ -129,8 +162,10 @@ def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = No
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types for corrupt files
-        msg = str(e).splitlines()[0] if str(e) else type(e).__name__
-        raise MeshError(f"{path}: cannot read mesh ({msg})") from None
+        # (an ImportError: trimesh guessing the text encoding of bytes that are not text)
+        msg = "undecodable bytes" if isinstance(e, ImportError) else (str(e).splitlines() or [type(e).__name__])[0]
+        kind = path.suffix.lstrip(".").upper() or "mesh"
+        raise MeshError(f"{path}: cannot read mesh: not a valid {kind} file ({msg})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
         raise MeshError(f"{path}: mesh has no faces")
     kind = loaded.visual.kind if loaded.visual is not None else None
@@ -147,19 +182,8 @@ def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = No
             f"{path}: mesh has no texture or vertex colours (SIFT needs a textured mesh; "
             "check that the .mtl and texture image sit beside the .obj)"
         )
-    scale = 1.0
-    diag = float(np.linalg.norm(loaded.bounds[1] - loaded.bounds[0]))
-    units = conf.units
-    if units == "auto" and diag > conf.mm_diagonal_threshold:
-        if conf.on_millimetres == "refuse":
-            raise MeshError(
-                f"{path}: bounding-box diagonal is {diag:.1f} units, so the mesh looks like millimetres; "
-                "convert it to metres or set mesh.on_millimetres: convert"
-            )
-        log.warning("%s: bounding-box diagonal %.1f looks like millimetres; scaling by 0.001", path, diag)
-        units = "mm"
-    if units == "mm":
-        scale = 0.001
+    scale = unit_scale(path, loaded.bounds, conf)
+    if scale != 1.0:
         loaded.apply_scale(scale)
     _limit_texture(loaded, conf.max_texture_px)
     if not np.all(np.isfinite(loaded.vertices)):

@@ -240,6 +240,30 @@ def _rt(row, where: str) -> tuple[np.ndarray, np.ndarray] | None:
     return R, t
 
 
+#: Accepted range of (bounding-box diagonal of an object's model points) / (its diameter). For points on the
+#: object the ratio lies between about 1 and sqrt(3); points in millimetres against a diameter in metres
+#: (a unit slip that silently zeroes every AUC) put it near 1000.
+SPAN_RATIO_RANGE = (0.1, 10.0)
+
+
+def _check_scale(obj: str, pts: np.ndarray, diameter_m: float) -> None:
+    """Refuse model points and a diameter that cannot both be in metres (DataError naming the object)."""
+    try:
+        pts = _check_points(pts)
+    except ValueError as e:
+        raise DataError(f"object {obj!r}: model points: {e}") from None
+    d = float(diameter_m)
+    if not (np.isfinite(d) and d > 0):
+        raise DataError(f"object {obj!r}: diameter must be a positive number of metres, got {diameter_m!r}")
+    span = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    lo, hi = SPAN_RATIO_RANGE
+    if not lo <= span / d <= hi:
+        raise DataError(
+            f"object {obj!r}: the model points span {span:.4g} but the diameter is {d:.4g} m; both must be in "
+            "metres (model points in millimetres?)"
+        )
+
+
 def _pick_estimates(est: pd.DataFrame) -> pd.DataFrame:
     """One estimate per (frame_id, obj_name): an ok row before a failed one, then the most confident."""
     if est.empty:
@@ -299,7 +323,8 @@ def score(
         recall with each instance's own diameter). AUCs and recalls are percentages.
 
     Raises:
-        DataError: a required column is missing, or an object has no points or diameter.
+        DataError: a required column is missing, an object has no points or diameter, or its points and
+            diameter disagree in scale (:data:`SPAN_RATIO_RANGE`; e.g. millimetre points).
     """
     for name, table, cols in (
         ("estimates", est, ("frame_id", "obj_name", "status", "R", "t_m", "confidence")),
@@ -313,6 +338,7 @@ def score(
             raise DataError(f"ground truth: object {obj!r} has no model points")
         if obj not in diameters:
             raise DataError(f"ground truth: object {obj!r} has no diameter")
+        _check_scale(obj, points[obj], diameters[obj])
 
     picked = _pick_estimates(est)
     by_key = {(r["frame_id"], r["obj_name"]): r for r in picked.to_dict("records")}

@@ -251,3 +251,15 @@ def test_score_names_missing_points():
         metrics.score(est, gt, {}, {"a": 0.1})
     with pytest.raises(DataError, match="estimates table: missing column.*confidence"):
         metrics.score(est.drop(columns="confidence"), gt, {"a": SQUARE}, {"a": 0.1})
+
+
+def test_score_refuses_points_and_diameter_in_different_units():
+    # Millimetre model points with a metre diameter turn a 1 degree error into metres of ADD: refuse them.
+    gt = pd.DataFrame([_gt_row("f1", "a", np.eye(3), np.array([0.0, 0.0, 0.5]))])
+    est = pd.DataFrame([_est_row("f1", "a", _rot_z(1), np.array([0.0, 0.0, 0.5]))])
+    _, s = metrics.score(est, gt, {"a": SQUARE}, {"a": 0.1})
+    assert s.set_index("obj_name").loc["a", "add_auc"] > 99.0
+    with pytest.raises(DataError, match=r"'a': the model points span 141\.4 but the diameter is 0\.1 m"):
+        metrics.score(est, gt, {"a": SQUARE * 1000}, {"a": 0.1})
+    with pytest.raises(DataError, match="'a': diameter must be a positive number of metres, got nan"):
+        metrics.score(est, gt, {"a": SQUARE}, {"a": float("nan")})

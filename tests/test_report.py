@@ -9,6 +9,7 @@ import os
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -19,7 +20,7 @@ import trimesh
 import yaml
 
 from batchpose import make_report
-from batchpose.errors import DataError
+from batchpose.errors import DataError, MeshError
 from batchpose.poses import PoseRecord
 
 W, H = 160, 120
@@ -57,8 +58,20 @@ def _gt_pose(obj: str, k: int) -> np.ndarray:
     return _T(R, [-0.05, 0.0, 0.6]) if obj == "obj_a" else _T(R, [0.06, 0.01, 0.6])
 
 
-def make_run(root: Path, with_gt: bool = True, frames_root: Path | None = None, shift_mm: float = 10.0) -> Path:
-    """Write a run directory in the pipeline's layout (4 frames, 2 objects)."""
+def make_run(
+    root: Path,
+    with_gt: bool = True,
+    frames_root: Path | None = None,
+    shift_mm: float = 10.0,
+    turn_b_deg: float = 0.0,
+    model_scale: float = 1.0,
+) -> Path:
+    """Write a run directory in the pipeline's layout (4 frames, 2 objects).
+
+    ``turn_b_deg`` turns obj_b's estimates about its x axis; ``model_scale`` multiplies the coordinates of
+    obj_a's points file and obj_b's mesh (1000: millimetre files), while objects.json keeps the metre
+    diameters, as ``batchpose run`` writes them after converting a millimetre mesh.
+    """
     run = root / "run"
     data = root / "data"
     img_dir = data / "images"
@@ -73,8 +86,8 @@ def make_run(root: Path, with_gt: bool = True, frames_root: Path | None = None, 
     )
 
     pts_a = trimesh.sample.sample_surface(trimesh.creation.box(extents=BOX_A), 300, seed=1)[0]
-    np.savetxt(data / "obj_a.xyz", pts_a, fmt="%.6f")
-    trimesh.creation.box(extents=BOX_B).export(data / "obj_b.ply")
+    np.savetxt(data / "obj_a.xyz", pts_a * model_scale, fmt="%.6f")
+    trimesh.creation.box(extents=BOX_B * model_scale).export(data / "obj_b.ply")
     objects = {
         "obj_a": {
             "obj_id": 1,
@@ -162,7 +175,7 @@ def make_run(root: Path, with_gt: bool = True, frames_root: Path | None = None, 
                     "obj_b",
                     "ok",
                     obj_id=2,
-                    cam_from_model=_gt_pose("obj_b", k),
+                    cam_from_model=_gt_pose("obj_b", k) @ _T(_rot(0, turn_b_deg), [0.0, 0.0, 0.0]),
                     confidence=0.8,
                     n_matches=60,
                     n_inliers=30,
@@ -336,6 +349,118 @@ def test_compare(tmp_path):
     html = (out / "index.html").read_text()
     imgs = _imgs(html)
     assert set(imgs) == {"plot-compare-adds", "plot-compare-add"} and 'id="compare-table"' in html
+
+
+# --- model units --------------------------------------------------------------------------------------
+
+
+def _summary(run: Path) -> pd.DataFrame:
+    return pd.read_csv(make_report.main(run) / "summary.csv").set_index("obj_name")
+
+
+def test_millimetre_models_score_like_metres(tmp_path, caplog):
+    # obj_b's estimates are turned by 2 degrees, so its ADD depends on the model points' scale (about 1 mm
+    # in metres; about 1 m, i.e. a failure, with unconverted millimetre points).
+    metre = _summary(make_run(tmp_path / "m", turn_b_deg=2.0))
+    with caplog.at_level("WARNING", logger="batchpose"):
+        milli = _summary(make_run(tmp_path / "mm", turn_b_deg=2.0, model_scale=1000.0))
+    pd.testing.assert_frame_equal(milli, metre, rtol=1e-6)
+    assert "obj_a.xyz: the points span" in caplog.text and "scaling by 0.001" in caplog.text  # points file
+    assert "obj_b.ply: bounding-box diagonal" in caplog.text  # mesh, by the estimator's rule
+    # d = [a, a, a, inf] with a ~ 1 mm -> AUC = (0.1 - a) * 0.75 / 0.1 * 100, just below 75.
+    assert 73.0 < metre.loc["obj_b", "add_auc"] < 75.0 and metre.loc["obj_b", "add_recall_01d"] == 75.0
+    assert metre.loc["obj_a", "add_auc"] == pytest.approx(75.0)
+
+
+def test_score_command_converts_millimetre_models(tmp_path):
+    from batchpose import bop
+
+    printed = []
+    for sub, scale in (("m", 1.0), ("mm", 1000.0)):
+        run = make_run(tmp_path / sub, turn_b_deg=2.0, model_scale=scale)
+        csv = bop.write_bop_csv(pd.read_parquet(run / "poses.parquet"), tmp_path / sub / "res.csv")
+        # A subprocess: the CLI configures the "batchpose" logger for the whole process.
+        done = subprocess.run(
+            [sys.executable, "-m", "batchpose", "score", str(csv), str(run)], capture_output=True, text=True
+        )
+        assert done.returncode == 0, done.stderr
+        printed.append(done.stdout)
+    assert printed[1] == printed[0]
+    row_b = next(r for r in (line.split() for line in printed[0].splitlines()) if r[:1] == ["obj_b"])
+    assert 73.0 < float(row_b[2]) < 75.0  # ADD-S AUC, not 0
+
+
+@pytest.mark.parametrize("scale", [100.0, 0.5])
+def test_points_file_in_other_units_is_refused(tmp_path, scale):
+    # Centimetres, or points of an object half the mesh's size: neither metres nor millimetres of the mesh.
+    run = make_run(tmp_path)
+    pts = np.loadtxt(tmp_path / "data" / "obj_a.xyz")
+    np.savetxt(tmp_path / "data" / "obj_a.xyz", pts * scale, fmt="%.6f")
+    with pytest.raises(DataError, match=r"obj_a\.points: .*obj_a\.xyz: the points span .* neither in metres nor"):
+        make_report.main(run)
+
+
+def test_millimetre_models_refused_with_on_millimetres_refuse(tmp_path):
+    run = make_run(tmp_path, model_scale=1000.0)
+    (run / "config.yaml").write_text(yaml.safe_dump({"pipeline": {"mesh": {"on_millimetres": "refuse"}}}))
+    with pytest.raises(DataError, match=r"obj_a\.xyz: .*look like millimetres; .*on_millimetres: convert"):
+        make_report.main(run)
+    objects = json.loads((run / "objects.json").read_text())
+    objects["obj_a"]["points"] = None  # mesh samples instead: the mesh's own refusal, as in load_mesh
+    objects["obj_a"]["mesh"] = objects["obj_b"]["mesh"]
+    objects["obj_a"]["diameter_m"] = objects["obj_b"]["diameter_m"]
+    (run / "objects.json").write_text(json.dumps(objects))
+    with pytest.raises(MeshError, match=r"obj_b\.ply: .*looks like millimetres; .*on_millimetres: convert"):
+        make_report.main(run)
+
+
+def _scaled_obj(src: Path, dst_dir: Path, scale: float) -> Path:
+    """Copy an OBJ with its material and texture, vertex coordinates multiplied by ``scale``."""
+    dst_dir.mkdir(parents=True)
+    for f in src.parent.iterdir():
+        if f.suffix != ".obj":
+            shutil.copy(f, dst_dir / f.name)
+    lines = []
+    for line in src.read_text().splitlines():
+        if line.startswith("v "):
+            line = "v " + " ".join(f"{float(x) * scale:.6f}" for x in line.split()[1:4])
+        lines.append(line)
+    dst = dst_dir / src.name
+    dst.write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_unit_scale_is_load_mesh_rule(tmp_path):
+    from batchpose.config import MeshConfig
+    from batchpose.mesh import load_mesh, unit_scale
+    from tests.conftest import GELATIN
+
+    mm = _scaled_obj(GELATIN, tmp_path / "mm", 1000.0)
+    for path, conf in [
+        (GELATIN, MeshConfig()),
+        (mm, MeshConfig()),
+        (mm, MeshConfig(units="m")),
+        (GELATIN, MeshConfig(units="mm")),
+        (GELATIN, MeshConfig(on_millimetres="refuse")),
+    ]:
+        bounds = trimesh.load(path, force="mesh", process=False, skip_materials=True).bounds
+        assert unit_scale(path, bounds, conf) == load_mesh(path, conf).scale
+    with pytest.raises(MeshError, match="looks like millimetres") as helper:
+        unit_scale(
+            mm,
+            trimesh.load(mm, force="mesh", process=False, skip_materials=True).bounds,
+            MeshConfig(on_millimetres="refuse"),
+        )
+    with pytest.raises(MeshError) as loader:
+        load_mesh(mm, MeshConfig(on_millimetres="refuse"))
+    assert str(helper.value) == str(loader.value)
+    # The report's model points of the millimetre mesh are the metre mesh's, and span its diameter_m.
+    objects = {
+        n: {"mesh": str(p), "points": None, "diameter_m": load_mesh(GELATIN).diameter_m}
+        for n, p in [("m", GELATIN), ("mm", mm)]
+    }
+    points, _ = make_report.load_model_points(objects, ["m", "mm"])
+    np.testing.assert_allclose(points["mm"], points["m"], atol=1e-8)
 
 
 # --- real browser ------------------------------------------------------------------------------------
