@@ -8,7 +8,8 @@ Layouts:
     ``ycbv``: ``ROOT/classes.txt`` (one object name per line, obj_id = 1-based line),
     ``ROOT/data/<video>/<frame>-color.png`` + ``-meta.mat`` and ``ROOT/data_syn/<frame>-color.png`` +
     ``-meta.mat`` (scene_id 10000). ``meta.mat``: ``cls_indexes`` (1-based into classes.txt),
-    ``poses`` (3, 4, N) model->camera in metres, ``intrinsic_matrix`` (3, 3).
+    ``poses`` (3, 4, N) model->camera in metres, ``intrinsic_matrix`` (3, 3). A ``-meta.mat`` that cannot
+    be read (or lacks one of these) fails only its frame: :attr:`Frame.error`, status ``bad_camera``.
     ``bop``: ``ROOT/<scene>/scene_camera.json`` (``cam_K``: 9 floats, row-major, per im_id),
     optional ``scene_gt.json`` (``cam_R_m2c`` row-major, ``cam_t_m2c`` in mm, ``obj_id``) and
     ``rgb/<im_id:06d>.png|jpg``.
@@ -35,7 +36,7 @@ import scipy.io
 import yaml
 from scipy.io.matlab import MatReadError
 
-from batchpose.errors import ConfigError, DataError
+from batchpose.errors import CameraError, ConfigError, DataError
 from batchpose.frames import Camera, Frame, ObjectPose
 
 log = logging.getLogger("batchpose")
@@ -125,6 +126,22 @@ def one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
 
 
+def read_text(path: Path) -> str:
+    """A text file's contents.
+
+    Raises:
+        DataError: the file cannot be read or is not UTF-8 text (naming the file and the first bad byte).
+    """
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise DataError(
+            f"{path}: not UTF-8 text (byte 0x{e.object[e.start]:02x} at offset {e.start}); save it as UTF-8"
+        ) from None
+    except OSError as e:
+        raise DataError(f"{path}: cannot read ({e.strerror or e})") from None
+
+
 def _read_bytes(path: Path) -> bytes:
     try:
         return path.read_bytes()
@@ -152,6 +169,10 @@ def _require_dir(path: Path, what: str) -> Path:
 # --------------------------------------------------------------------------------------------- YCB-Video
 
 
+class _UnusableMeta(DataError):
+    """A ``-meta.mat`` that cannot be read or lacks what a frame needs: that frame fails, not the batch."""
+
+
 class YcbvFrameSource(FrameSource):
     """YCB-Video folder layout (``data/<video>/`` and ``data_syn/``); see the module docstring.
 
@@ -164,7 +185,7 @@ class YcbvFrameSource(FrameSource):
         classes = self.root / "classes.txt"
         if not classes.is_file():
             raise DataError(f"{classes}: missing (YCB-Video needs classes.txt, one object name per line)")
-        self.classes = [ln.strip() for ln in classes.read_text().splitlines() if ln.strip()]
+        self.classes = [ln.strip() for ln in read_text(classes).splitlines() if ln.strip()]
         if not self.classes:
             raise DataError(f"{classes}: empty (expected one object name per line)")
         #: (color path, scene_id, im_id, frame_id) per frame, in reading order.
@@ -194,6 +215,7 @@ class YcbvFrameSource(FrameSource):
             meta = self._meta_path(color)
             if not meta.is_file():
                 raise DataError(f"{meta}: missing (every -color.png needs its -meta.mat)")
+        self._warned: set[Path] = set()
 
     @staticmethod
     def _meta_path(color: Path) -> Path:
@@ -204,24 +226,29 @@ class YcbvFrameSource(FrameSource):
             # meta.mat also holds a 480x640x3 vertmap; load only what we need.
             m = scipy.io.loadmat(str(meta), variable_names=["cls_indexes", "poses", "intrinsic_matrix", "factor_depth"])
         except (OSError, ValueError, TypeError, MatReadError) as e:
-            raise DataError(f"{meta}: cannot read MATLAB file ({one_line(e)})") from None
+            raise _UnusableMeta(f"{meta}: cannot read MATLAB file ({one_line(e)})") from None
         for key in ("cls_indexes", "poses", "intrinsic_matrix"):
             if key not in m:
-                raise DataError(f"{meta}: missing variable {key!r}")
-        K = np.asarray(m["intrinsic_matrix"], dtype=np.float64)
+                raise _UnusableMeta(f"{meta}: missing variable {key!r}")
+        try:
+            K = np.asarray(m["intrinsic_matrix"], dtype=np.float64)
+            cls = np.asarray(m["cls_indexes"]).reshape(-1).astype(int)
+            poses = np.asarray(m["poses"], dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise _UnusableMeta(
+                f"{meta}: cls_indexes, poses and intrinsic_matrix must be numbers ({one_line(e)})"
+            ) from None
         if K.shape != (3, 3):
-            raise DataError(f"{meta}: intrinsic_matrix must be 3x3, got shape {K.shape}")
-        cls = np.asarray(m["cls_indexes"]).reshape(-1).astype(int)
-        poses = np.asarray(m["poses"], dtype=np.float64)
+            raise _UnusableMeta(f"{meta}: intrinsic_matrix must be 3x3, got shape {K.shape}")
         if poses.ndim == 2:  # MATLAB drops the trailing singleton dimension of one object
             poses = poses[:, :, None]
-        if poses.shape[:2] != (3, 4) or poses.shape[2] != cls.size:
-            raise DataError(
+        if poses.ndim != 3 or poses.shape[:2] != (3, 4) or poses.shape[2] != cls.size:
+            raise _UnusableMeta(
                 f"{meta}: poses must be 3x4x{cls.size} (one per cls_indexes entry), got shape {poses.shape}"
             )
         gt = []
         for i, c in enumerate(cls):
-            if not 1 <= c <= len(self.classes):
+            if not 1 <= c <= len(self.classes):  # classes.txt is not this data set's: not one frame's fault
                 raise DataError(f"{meta}: cls_indexes value {c} outside 1..{len(self.classes)} (classes.txt)")
             T = np.eye(4)
             T[:3, :] = poses[:, :, i]
@@ -232,7 +259,16 @@ class YcbvFrameSource(FrameSource):
 
     def __iter__(self) -> Iterator[Frame]:
         for index, (color, scene_id, im_id, frame_id) in enumerate(self._items):
-            K, gt, depth_scale_m = self._read_meta(self._meta_path(color))
+            meta = self._meta_path(color)
+            error = None
+            try:
+                K, gt, depth_scale_m = self._read_meta(meta)
+            except _UnusableMeta as e:  # the frame is listed and fails as bad_camera with this reason
+                error = CameraError(str(e))
+                K, gt, depth_scale_m = np.full((3, 3), np.nan), (), 0.0
+                if meta not in self._warned:
+                    log.warning("%s; frame %s is not estimated (bad_camera)", e, frame_id)
+                    self._warned.add(meta)
             data = _read_bytes(color)
             depth = color.with_name(color.name.replace("-color.png", "-depth.png"))
             has_depth = depth_scale_m > 0 and depth.is_file()
@@ -249,6 +285,7 @@ class YcbvFrameSource(FrameSource):
                 depth_format="png" if has_depth else "",
                 depth_data=_read_bytes(depth) if has_depth else b"",
                 depth_scale_m=depth_scale_m if has_depth else 0.0,
+                error=error,
             )
 
     def count(self) -> int:
@@ -265,10 +302,9 @@ class YcbvFrameSource(FrameSource):
 
 
 def _load_json(path: Path) -> Any:
+    text = read_text(path)
     try:
-        return json.loads(path.read_text())
-    except OSError as e:
-        raise DataError(f"{path}: cannot read ({e.strerror or e})") from None
+        return json.loads(text)
     except json.JSONDecodeError as e:
         raise DataError(f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from None
 
@@ -313,12 +349,15 @@ class BopFrameSource(FrameSource):
                     raise DataError(f"{cams_path}: key {key!r} is not an integer im_id")
                 im_id = int(key)
                 cam_K = cams[key].get("cam_K") if isinstance(cams[key], dict) else None
-                if cam_K is None or len(cam_K) != 9:
-                    raise DataError(f"{cams_path}: im_id {im_id}: cam_K must be 9 numbers (row-major 3x3)")
+                try:
+                    K = np.asarray(cam_K, dtype=np.float64).reshape(3, 3)
+                except (TypeError, ValueError):
+                    raise DataError(
+                        f"{cams_path}: im_id {im_id}: cam_K must be 9 numbers (row-major 3x3), got {cam_K!r:.80}"
+                    ) from None
                 image = files.get(f"{im_id:06d}")
                 if image is None:
                     raise DataError(f"{rgb / f'{im_id:06d}.png'}: missing (listed in {cams_path.name})")
-                K = np.asarray(cam_K, dtype=np.float64).reshape(3, 3)
                 depth = scene / "depth" / f"{im_id:06d}.png"
                 scale = cams[key].get("depth_scale", 1.0)  # BOP: millimetres per unit
                 if not isinstance(scale, (int, float)) or not scale > 0:
@@ -339,8 +378,14 @@ class BopFrameSource(FrameSource):
         if not path.is_file():
             return {}
         raw = _load_json(path)
+        if not isinstance(raw, dict):
+            raise DataError(f"{path}: expected a mapping im_id -> list of object poses, got a {type(raw).__name__}")
         out: dict[int, tuple[ObjectPose, ...]] = {}
         for key, objs in raw.items():
+            if not str(key).isdigit():
+                raise DataError(f"{path}: key {key!r} is not an integer im_id")
+            if not isinstance(objs, list):
+                raise DataError(f"{path}: im_id {key}: expected a list of object poses, got a {type(objs).__name__}")
             poses = []
             for j, o in enumerate(objs):
                 try:
@@ -402,7 +447,7 @@ def load_intrinsics(path: Path) -> Camera:
     """Read an intrinsics YAML (``fx, fy, cx, cy, width, height``, optional ``dist``, ``distortion_model``).
 
     Raises:
-        DataError: the file is missing or not YAML.
+        DataError: the file is missing, not UTF-8 text or not YAML.
         ConfigError: a key is missing, unknown or not a number.
         CameraError: the values do not make a valid camera.
     """
@@ -410,7 +455,7 @@ def load_intrinsics(path: Path) -> Camera:
     if not path.is_file():
         raise DataError(f"{path}: intrinsics file does not exist (expected YAML with {', '.join(INTRINSICS_KEYS)})")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(read_text(path))
     except yaml.YAMLError as e:
         raise DataError(f"{path}: invalid YAML ({one_line(e)})") from None
     if not isinstance(raw, dict):
@@ -423,6 +468,9 @@ def load_intrinsics(path: Path) -> Camera:
     missing = [k for k in INTRINSICS_KEYS if k not in raw]
     if missing:
         raise ConfigError(f"{path}: missing key {missing[0]!r} (need {', '.join(INTRINSICS_KEYS)})")
+    flags = [k for k in INTRINSICS_KEYS if isinstance(raw[k], bool)]
+    if flags:
+        raise ConfigError(f"{path}: {flags[0]} must be a number, got {raw[flags[0]]!r}")
     try:
         fx, fy, cx, cy = (float(raw[k]) for k in ("fx", "fy", "cx", "cy"))
         width, height = int(raw["width"]), int(raw["height"])
@@ -458,7 +506,7 @@ class ImagesFrameSource(FrameSource):
             size = image_size(data)
             if size is not None and size != (self.camera.width, self.camera.height) and not self._warned_size:
                 log.warning(
-                    "%s: image is %dx%d but %s says %dx%d",
+                    "%s: image is %dx%d but %s says %dx%d (frames of another size fail as bad_image)",
                     path,
                     *size,
                     self.intrinsics,

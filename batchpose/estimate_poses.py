@@ -127,6 +127,8 @@ def _chunks(source, objects: list[str], targets_mode: str, done: set, chunk_size
         else:
             listed = {p.obj_name for p in frame.gt}
             names = [o for o in objects if o in listed]
+            if not names and frame.error is not None:
+                names = list(objects)  # unreadable annotations: each object gets a failed row with the reason
         names = [n for n in names if (frame.frame_id, n) not in done]
         if not names:
             continue

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from batchpose.errors import CameraError, ImageError
+from batchpose.errors import BatchposeError, CameraError, ImageError
 
 #: Raw encodings understood by :func:`decode_image` (foxglove.RawImage / sensor_msgs/Image names).
 RAW_ENCODINGS = {
@@ -97,6 +97,10 @@ class Frame:
         depth_data: the depth image's encoded or raw bytes.
         depth_scale_m: metres per depth unit (YCB-Video: 1e-4; float depth in metres: 1.0).
         depth_step: bytes per row of a raw depth image (0: packed, or compressed).
+        error: why the frame cannot be used although the data set lists it (a corrupt ``-meta.mat``, an
+            undecodable image message, a raw image of another size than its calibration); None when it
+            can. :func:`decode_image` raises it, so the frame fails with it (``bad_image`` for an
+            :class:`ImageError`, ``bad_camera`` for a :class:`CameraError`) and the batch goes on.
     """
 
     frame_id: str
@@ -113,6 +117,7 @@ class Frame:
     depth_data: bytes = b""
     depth_scale_m: float = 0.0
     depth_step: int = 0
+    error: BatchposeError | None = None
 
     @property
     def has_depth(self) -> bool:
@@ -128,7 +133,10 @@ def decode_image(frame: Frame) -> np.ndarray:
     Raises:
         ImageError: empty data, undecodable bytes, unsupported encoding or a size that disagrees with
             the calibration.
+        BatchposeError: the frame's :attr:`Frame.error`, when it has one.
     """
+    if frame.error is not None:  # a fresh copy: the stored one would collect a traceback per raise
+        raise type(frame.error)(*frame.error.args) from None
     where = frame.source or frame.frame_id
     if not frame.image_data:
         raise ImageError(f"{where}: image is empty (0 bytes)")
@@ -176,6 +184,9 @@ def decode_image(frame: Frame) -> np.ndarray:
         )
     if rgb.shape[0] == 0 or rgb.shape[1] == 0:
         raise ImageError(f"{where}: image has zero size {rgb.shape[1]}x{rgb.shape[0]}")
+    w, h = frame.camera.width, frame.camera.height
+    if w > 0 and h > 0 and rgb.shape[:2] != (h, w):  # K would be wrong for these pixels: no pose from them
+        raise ImageError(f"{where}: image is {rgb.shape[1]}x{rgb.shape[0]}, the camera calibration is for {w}x{h}")
     return rgb
 
 
@@ -188,7 +199,8 @@ def decode_depth(frame: Frame) -> np.ndarray | None:
 
     Raises:
         ImageError: empty or undecodable data, an encoding not in :data:`DEPTH_ENCODINGS`, a depth scale
-            that is not positive, or a size that differs from the colour image's calibration.
+            that is not positive, or a size that differs from the colour image's calibration (or a colour
+            image of unknown size).
     """
     if not frame.depth_format:
         return None
@@ -203,6 +215,11 @@ def decode_depth(frame: Frame) -> np.ndarray | None:
             f"{where}: depth scale must be a positive number of metres per unit, got {frame.depth_scale_m}"
         )
     w, h = frame.camera.width, frame.camera.height
+    if w <= 0 or h <= 0:
+        raise ImageError(
+            f"{where}: the colour image's size is unknown (its header is unreadable), so the depth "
+            "image cannot be matched to it"
+        )
     if fmt == "png":
         img = cv2.imdecode(np.frombuffer(frame.depth_data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None or img.ndim != 2 or img.dtype != np.uint16:

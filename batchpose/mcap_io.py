@@ -3,11 +3,14 @@
 Reading (:class:`McapFrameSource`): images from ``foxglove.CompressedImage`` (jpeg, png),
 ``foxglove.RawImage`` (rgb8, bgr8, rgba8, bgra8, mono8, mono16), ``sensor_msgs/msg/Image`` and
 ``sensor_msgs/msg/CompressedImage`` (ROS 2 cdr); calibration from ``foxglove.CameraCalibration`` or
-``sensor_msgs/msg/CameraInfo``. Each image uses the latest calibration logged at or before it (images
+``sensor_msgs/msg/CameraInfo``; foxglove schemas in protobuf or in Foxglove's JSON encoding (bytes as
+base64, times as ``{sec, nsec}``). Each image uses the latest calibration logged at or before it (images
 logged before the first calibration use the first one, with a warning). Image bytes are never decoded
 here: ``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
 stride. With a ``depth_topic``, each image gets the depth image (16UC1 / mono16 in mm, 32FC1 in m, or a
-16-bit PNG in mm) whose header stamp is nearest its own, within :data:`DEPTH_MAX_GAP_NS`.
+16-bit PNG in mm) whose header stamp is nearest its own, within :data:`DEPTH_MAX_GAP_NS`. An image
+message that does not parse, or a raw image of another size than its calibration, is still a frame: one
+that fails (``Frame.error``, status ``bad_image``) while the others are estimated.
 
 Writing: :func:`write_frames_mcap` turns frames into a log; :func:`write_poses_mcap` copies every input
 message byte for byte and adds the estimates. Topics written by batchpose:
@@ -36,6 +39,8 @@ time the calibration and ground truth are written before the image.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import dataclasses
 import io
 import json
@@ -78,7 +83,7 @@ from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
 from batchpose.datasets import FrameSource, image_size, one_line
-from batchpose.errors import CameraError, ConfigError, DataError
+from batchpose.errors import BatchposeError, CameraError, ConfigError, DataError, ImageError
 from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth
 from batchpose.poses import row_cam_from_model
 
@@ -197,6 +202,13 @@ _PALETTE = [
 ]
 #: Errors the mcap reader raises on bad bytes (CRCValidationError is a ValueError).
 _READ_ERRORS = (McapError, ValueError, struct.error, ZstdError, RuntimeError)
+#: Errors of a decoded message without a field we need, or with one of the wrong type.
+_FIELD_ERRORS = (KeyError, TypeError, ValueError, AttributeError, binascii.Error)
+_MISSING = object()
+
+
+class _BadMessage(DataError):
+    """One message that does not parse or lacks a field: an image message's frame fails, not the batch."""
 
 
 # ----------------------------------------------------------------------------------------- decoding
@@ -240,68 +252,134 @@ def _compressed_format(fmt: str) -> str:
     return f
 
 
+def _field(msg: Any, *names: str, default: Any = _MISSING) -> Any:
+    """First present field: foxglove uses K/D/P, ROS 2 k/d/p; a JSON-encoded message is a dict.
+
+    Raises:
+        KeyError: none of ``names`` is present and there is no ``default``.
+    """
+    for n in names:
+        if isinstance(msg, Mapping):
+            if n in msg:
+                return msg[n]
+        elif hasattr(msg, n):
+            return getattr(msg, n)
+    if default is _MISSING:
+        raise KeyError(names[0])
+    return default
+
+
 def _stamp_ns(msg: Any) -> int:
-    if hasattr(msg, "header"):  # ROS 2: header.stamp.sec / nanosec
-        st = msg.header.stamp
-        return int(st.sec) * 1_000_000_000 + int(st.nanosec)
-    ts = msg.timestamp  # foxglove: google.protobuf.Timestamp
+    header = _field(msg, "header", default=None)
+    if header is not None:  # ROS 2: header.stamp.sec / nanosec
+        st = _field(header, "stamp")
+        return int(_field(st, "sec")) * 1_000_000_000 + int(_field(st, "nanosec"))
+    ts = _field(msg, "timestamp")  # foxglove: google.protobuf.Timestamp; in JSON {sec, nsec}
+    if isinstance(ts, Mapping):
+        return int(ts.get("sec", 0)) * 1_000_000_000 + int(ts.get("nsec", 0))
     return int(ts.seconds) * 1_000_000_000 + int(ts.nanos)
 
 
 def _frame_id_of(msg: Any) -> str:
-    return str(msg.header.frame_id if hasattr(msg, "header") else msg.frame_id)
+    header = _field(msg, "header", default=None)
+    return str(_field(header, "frame_id") if header is not None else _field(msg, "frame_id", default=""))
 
 
-def _field(msg: Any, *names: str) -> Any:
-    """First present attribute: foxglove uses K/D/P, ROS 2 k/d/p."""
-    for n in names:
-        if hasattr(msg, n):
-            return getattr(msg, n)
-    raise AttributeError(names[0])
+def _bytes(data: Any) -> bytes:
+    """A bytes field: Foxglove's JSON encoding holds it as base64 text."""
+    if isinstance(data, str):
+        return base64.b64decode(data, validate=True)
+    return bytes(data)
 
 
 def _to_calib(msg: Any) -> _Calib:
     K = np.asarray(list(_field(msg, "K", "k")), dtype=np.float64)
     # A malformed K becomes NaN so that the frame fails as bad_camera instead of stopping the batch.
     K = K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan)
-    dist = np.asarray(list(_field(msg, "D", "d")), dtype=np.float64).reshape(-1)
-    return _Calib(K=K, width=int(msg.width), height=int(msg.height), dist=dist, model=str(msg.distortion_model))
+    dist = np.asarray(list(_field(msg, "D", "d", default=[])), dtype=np.float64).reshape(-1)
+    return _Calib(
+        K=K,
+        width=int(_field(msg, "width", default=0)),
+        height=int(_field(msg, "height", default=0)),
+        dist=dist,
+        model=str(_field(msg, "distortion_model", default="")),
+    )
 
 
 def _to_image(msg: Any, kind: str) -> _Image:
-    data = bytes(msg.data)
+    data = _bytes(_field(msg, "data"))
     if kind == "compressed":
-        fmt = _compressed_format(str(msg.format))
+        fmt = _compressed_format(str(_field(msg, "format")))
         return _Image(fmt, data, 0, 0, 0, _frame_id_of(msg), _stamp_ns(msg), raw=False)
     return _Image(
-        str(msg.encoding),
+        str(_field(msg, "encoding")),
         data,
-        int(msg.width),
-        int(msg.height),
-        int(msg.step),
+        int(_field(msg, "width")),
+        int(_field(msg, "height")),
+        int(_field(msg, "step")),
         _frame_id_of(msg),
         _stamp_ns(msg),
         raw=True,
     )
 
 
-def _camera(cal: _Calib, img: _Image) -> Camera:
-    """Camera for one image: raw images carry their size; compressed ones take the calibration's."""
-    if img.raw:
+def _camera(cal: _Calib, img: _Image | None) -> Camera:
+    """Camera for one image: raw images carry their size; compressed ones (and an image message that
+    does not parse: None) take the calibration's."""
+    if img is not None and img.raw:
         w, h = img.width, img.height
-    elif cal.width and cal.height:
+    elif (cal.width and cal.height) or img is None:
         w, h = cal.width, cal.height
     else:
         w, h = image_size(img.data) or (0, 0)
     return Camera(K=cal.K, width=w, height=h, dist=cal.dist, distortion_model=cal.model)
 
 
-def _gt_poses(obj: Mapping[str, Any]) -> tuple[ObjectPose, ...]:
-    poses = []
-    for o in obj.get("objects", []):
-        T = np.asarray(o["cam_from_model"], dtype=np.float64).reshape(4, 4)
-        poses.append(ObjectPose(obj_name=str(o["obj_name"]), cam_from_model=T))
-    return tuple(poses)
+@dataclass(frozen=True)
+class _GroundTruth:
+    """A decoded ``/ground_truth/poses`` message (:data:`GT_JSON_SCHEMA`)."""
+
+    scene_id: int | None
+    im_id: int | None
+    poses: tuple[ObjectPose, ...]
+    obj_ids: dict[str, int]
+
+
+def _to_ground_truth(obj: Any) -> _GroundTruth:
+    """Parse a ground-truth message.
+
+    Raises:
+        ValueError: saying which field is missing or malformed.
+    """
+    if not isinstance(obj, Mapping):
+        raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
+    objects = obj.get("objects", [])
+    if not isinstance(objects, list):
+        raise ValueError(f"'objects' must be a list, got {type(objects).__name__}")
+    poses, ids = [], {}
+    for j, o in enumerate(objects):
+        if not isinstance(o, Mapping) or "obj_name" not in o:
+            raise ValueError(f"object {j} has no obj_name")
+        name = str(o["obj_name"])
+        if "cam_from_model" not in o:
+            raise ValueError(f"object {j} ({name}) has no cam_from_model (16 numbers, row-major 4x4, metres)")
+        try:
+            T = np.asarray(o["cam_from_model"], dtype=np.float64).reshape(4, 4)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"object {j} ({name}): cam_from_model must be 16 numbers (row-major 4x4, metres)"
+            ) from None
+        poses.append(ObjectPose(obj_name=name, cam_from_model=T))
+        obj_id = o.get("obj_id", 0)
+        if isinstance(obj_id, int) and not isinstance(obj_id, bool) and obj_id > 0:
+            ids[name] = obj_id
+    scene_im = []
+    for key in ("scene_id", "im_id"):
+        try:
+            scene_im.append(None if obj.get(key) is None else int(obj[key]))
+        except (TypeError, ValueError):
+            raise ValueError(f"{key} must be an integer, got {obj[key]!r}") from None
+    return _GroundTruth(scene_im[0], scene_im[1], tuple(poses), ids)
 
 
 # ------------------------------------------------------------------------------------------ reading
@@ -309,7 +387,8 @@ def _gt_poses(obj: Mapping[str, Any]) -> tuple[ObjectPose, ...]:
 
 @dataclass(frozen=True)
 class _PendingFrame:
-    """A frame waiting for its depth image, and its image's header stamp (what depth is paired by)."""
+    """A frame waiting for its ground truth or depth image, and its image's header stamp (what depth is
+    paired by)."""
 
     frame: Frame
     stamp_ns_header: int
@@ -332,11 +411,15 @@ class McapFrameSource(FrameSource):
     ``batchpose convert``), ``gt`` comes from it and ``scene_id`` / ``im_id`` are the source data set's.
 
     A file without footer/summary (a recording cut short) is read in stream mode: the messages of all
-    complete chunks are used and a warning says what was lost.
+    complete chunks are used and a warning says what was lost. A batchpose log loses its metadata record
+    (object ids) with its tail; the ids are then taken from the ground-truth messages that were read.
 
     Raises:
         DataError: not an MCAP file, truncated with no complete image message, corrupt (CRC mismatch),
-            no image topic, or a chosen image topic whose schema is not an image type.
+            no image topic, or a chosen image topic whose schema is not an image type; when iterating, a
+            calibration or ground-truth message that does not parse or lacks a field (naming the topic,
+            its encoding and the message's log time). An image message that does not parse only fails
+            its frame (:attr:`Frame.error`, with a warning).
         CameraError: no calibration topic for the image topic, or it has no messages.
     """
 
@@ -362,6 +445,9 @@ class McapFrameSource(FrameSource):
         self._counts: dict[int, int] | None = None
         self._metadata: dict[str, dict[str, str]] = {}
         self.profile = ""
+        self._library = ""
+        #: object name -> obj_id from the ground-truth messages a stream-mode scan read.
+        self._gt_obj_ids: dict[str, int] = {}
         self.indexed = False
         self.truncated = False
         self._lost_bytes = 0
@@ -378,17 +464,27 @@ class McapFrameSource(FrameSource):
         self._decoders: dict[int, Any] = {}
         self._factories = (ProtobufDecoderFactory(), Ros2DecoderFactory())
         self._count: int | None = None
+        self._warned: set[tuple[str, int]] = set()  # (topic, log time) of messages already warned about
         if self.truncated:
             n_img = self._topic_count(self.image_topic)
+            ids = ""
+            if self._library.startswith("batchpose") and "obj_ids" not in self._metadata.get(METADATA_NAME, {}):
+                ids = (
+                    "; the metadata record at its end (object ids) was lost too: object ids come from the "
+                    "ground-truth messages read"
+                    if self._gt_obj_ids
+                    else "; the metadata record at its end (object ids) was lost too: obj_id is 0 in poses.csv"
+                )
             log.warning(
                 "%s: truncated MCAP (no footer/summary): read %d messages (%d images on %s) from complete "
                 "chunks; the last %d bytes (an incomplete record) were lost, holding an unknown number of "
-                "messages",
+                "messages%s",
                 self.path,
                 self._n_messages,
                 n_img,
                 self.image_topic,
                 self._lost_bytes,
+                ids,
             )
 
     # -- opening
@@ -424,6 +520,9 @@ class McapFrameSource(FrameSource):
                 for rec in StreamReader(f, validate_crcs=True).records:
                     if isinstance(rec, Message):
                         counts[rec.channel_id] += 1
+                        ch = self._channels.get(rec.channel_id)
+                        if ch is not None and ch.topic == GT_TOPIC:
+                            self._collect_obj_ids(rec.data)
                     elif isinstance(rec, Schema):
                         self._schemas[rec.id] = rec
                     elif isinstance(rec, Channel):
@@ -433,7 +532,7 @@ class McapFrameSource(FrameSource):
                     elif isinstance(rec, DataEnd):
                         data_end = True
                     elif hasattr(rec, "profile"):
-                        self.profile = rec.profile
+                        self.profile, self._library = rec.profile, str(getattr(rec, "library", ""))
                     last_ok = f.tell()
             except (EndOfFile, struct.error):
                 self.truncated = True
@@ -452,6 +551,14 @@ class McapFrameSource(FrameSource):
                 f"{self.path}: truncated MCAP (no footer/summary) and no complete chunk holds an image "
                 f"message ({self._size} bytes, {self._n_messages} messages recovered)"
             )
+
+    def _collect_obj_ids(self, data: bytes) -> None:
+        """Object ids of a ground-truth message (JSON), kept in case the metadata record is lost; a message
+        that does not parse is reported when the frames are read, not here."""
+        try:
+            self._gt_obj_ids.update(_to_ground_truth(json.loads(data)).obj_ids)
+        except ValueError:
+            pass
 
     def _schema_name(self, ch: Channel) -> str:
         s = self._schemas.get(ch.schema_id)
@@ -655,18 +762,54 @@ class McapFrameSource(FrameSource):
         try:
             return dec(message.data)
         except (DecodeError, McapError, ValueError, IndexError, TypeError, struct.error) as e:
-            raise DataError(
+            raise _BadMessage(
                 f"{self.path}:{channel.topic}: cannot decode message at log time {message.log_time} ({one_line(e)})"
             ) from None
 
+    def _bad_field(self, schema: Schema | None, channel: Channel, message: Message, e: Exception) -> _BadMessage:
+        what = f"has no field {e.args[0]!r}" if isinstance(e, KeyError) else f"has a malformed field ({one_line(e)})"
+        return _BadMessage(
+            f"{self.path}:{channel.topic}: {channel.message_encoding}-encoded {schema.name if schema else 'a'} "
+            f"message at log time {message.log_time} {what}"
+        )
+
     def calibration(self, schema: Schema | None, channel: Channel, message: Message) -> _Calib:
-        """Decode a calibration message."""
-        return _to_calib(self.decode(schema, channel, message))
+        """Decode a calibration message.
+
+        Raises:
+            DataError: the message does not parse or lacks a field.
+        """
+        msg = self.decode(schema, channel, message)
+        try:
+            return _to_calib(msg)
+        except _FIELD_ERRORS as e:
+            raise self._bad_field(schema, channel, message, e) from None
 
     def image(self, schema: Schema | None, channel: Channel, message: Message) -> _Image:
-        """Decode an image message (its pixel bytes stay encoded)."""
+        """Decode an image message (its pixel bytes stay encoded).
+
+        Raises:
+            DataError: the message does not parse or lacks a field.
+        """
         kind = IMAGE_SCHEMAS[schema.name if schema else ""]
-        return _to_image(self.decode(schema, channel, message), kind)
+        msg = self.decode(schema, channel, message)
+        try:
+            return _to_image(msg, kind)
+        except _FIELD_ERRORS as e:
+            raise self._bad_field(schema, channel, message, e) from None
+
+    def ground_truth(self, schema: Schema | None, channel: Channel, message: Message) -> _GroundTruth:
+        """Decode a ``/ground_truth/poses`` message.
+
+        Raises:
+            DataError: the message does not parse or lacks a field (which one, and its log time).
+        """
+        try:
+            return _to_ground_truth(self.decode(schema, channel, message))
+        except ValueError as e:
+            raise DataError(
+                f"{self.path}:{channel.topic}: {GT_SCHEMA_NAME} message at log time {message.log_time}: {e}"
+            ) from None
 
     def first_calibration(self) -> _Calib:
         """The first calibration message of the calibration topic."""
@@ -719,19 +862,27 @@ class McapFrameSource(FrameSource):
             topics.append(self.depth_topic)
         source = f"{self.path}:{self.image_topic}"
         cal: _Calib | None = None
-        gts: dict[int, Any] = {}
+        gts: dict[int, _GroundTruth] = {}
         index, last_t, dup = 0, None, 0
         warned_early = warned_size = False
+        # The last image's frame waits for the next later log time: its ground truth may be logged after it.
+        held: _PendingFrame | None = None
         for schema, channel, message in self.iter_raw(topics):
             t = message.log_time
+            if held is not None and t > held.frame.stamp_ns:
+                yield self._with_ground_truth(held, gts, with_depth)
+                held = None
             if channel.topic == self.calibration_topic:
                 cal = self.calibration(schema, channel, message)
                 continue
             if channel.topic == self.gt_topic:
-                gts[t] = self.decode(schema, channel, message)
+                gts[t] = self.ground_truth(schema, channel, message)
                 continue
             if with_depth and channel.topic == self.depth_topic:
-                yield self.image(schema, channel, message)
+                try:
+                    yield self.image(schema, channel, message)
+                except _BadMessage as e:  # its colour image keeps its RGB poses
+                    self._warn_once(channel.topic, t, f"{e}; no depth image for the frame it belongs to")
                 continue
             if cal is None and not warned_early:
                 log.warning(
@@ -741,13 +892,29 @@ class McapFrameSource(FrameSource):
                 )
                 warned_early = True
             c = cal or first
-            img = self.image(schema, channel, message)
+            error: BatchposeError | None = None
+            img: _Image | None
+            try:
+                img = self.image(schema, channel, message)
+            except _BadMessage as e:  # one bad message costs its frame (bad_image), not the batch
+                self._warn_once(channel.topic, t, f"{e}; that frame fails as bad_image")
+                error, img = ImageError(str(e)), None
             cam = _camera(c, img)
-            if img.fmt in ("png", "jpeg") and not warned_size and c.width and c.height:
+            size = None
+            if img is not None and img.raw:
+                size = (img.width, img.height) if img.width > 0 and img.height > 0 and img.data else None
+            elif img is not None and img.fmt in ("png", "jpeg"):
                 size = image_size(img.data)
-                if size is not None and size != (c.width, c.height):
+            if size is not None and c.width and c.height and size != (c.width, c.height):
+                if img is not None and img.raw:  # the camera takes a raw image's size: decode_image cannot tell
+                    error = ImageError(
+                        f"{source}: image is {size[0]}x{size[1]}, the camera calibration on "
+                        f"{self.calibration_topic} is for {c.width}x{c.height}"
+                    )
+                if not warned_size:
                     log.warning(
-                        "%s: image is %dx%d but the calibration on %s says %dx%d",
+                        "%s: image is %dx%d but the calibration on %s says %dx%d (frames of another size fail "
+                        "as bad_image)",
                         source,
                         *size,
                         self.calibration_topic,
@@ -755,25 +922,49 @@ class McapFrameSource(FrameSource):
                         c.height,
                     )
                     warned_size = True
-            gt = gts.pop(t, None)
-            if len(gts) > 16:  # ground truth of images that never came: drop what is older than now
-                gts = {k: v for k, v in gts.items() if k >= t}
+            if held is not None:  # two images at one log time: the first one takes its ground truth
+                yield self._with_ground_truth(held, gts, with_depth)
             dup = dup + 1 if t == last_t else 0
             last_t = t
             frame = Frame(
                 frame_id=f"mcap:{t}" + (f"#{dup}" if dup else ""),
-                scene_id=int(gt.get("scene_id", 0)) if gt else 0,
-                im_id=int(gt.get("im_id", index)) if gt else index,
+                scene_id=0,
+                im_id=index,
                 stamp_ns=t,
                 camera=cam,
-                image_format=img.fmt,
-                image_data=img.data,
-                raw_step=img.step,
-                gt=_gt_poses(gt) if gt else (),
+                image_format=img.fmt if img is not None else "",
+                image_data=img.data if img is not None else b"",
+                raw_step=img.step if img is not None else 0,
                 source=source,
+                error=error,
             )
-            yield _PendingFrame(frame, img.stamp_ns) if with_depth else frame
+            held = _PendingFrame(frame, img.stamp_ns if img is not None else t)
             index += 1
+        if held is not None:
+            yield self._with_ground_truth(held, gts, with_depth)
+
+    @staticmethod
+    def _with_ground_truth(held: _PendingFrame, gts: dict[int, _GroundTruth], with_depth: bool) -> Any:
+        """The held frame with the ground truth logged at its log time (taken out of ``gts``), if any."""
+        frame = held.frame
+        gt = gts.pop(frame.stamp_ns, None)
+        if len(gts) > 16:  # ground truth of images that never came: drop what is older than now
+            for k in [k for k in gts if k < frame.stamp_ns]:
+                del gts[k]
+        if gt is not None:
+            frame = dataclasses.replace(
+                frame,
+                scene_id=gt.scene_id if gt.scene_id is not None else 0,
+                im_id=gt.im_id if gt.im_id is not None else frame.im_id,
+                gt=gt.poses,
+            )
+        return _PendingFrame(frame, held.stamp_ns_header) if with_depth else frame
+
+    def _warn_once(self, topic: str, log_time: int, text: str) -> None:
+        """Warn about the message at ``log_time`` once per source, however often the frames are read."""
+        if (topic, log_time) not in self._warned:
+            self._warned.add((topic, log_time))
+            log.warning("%s", text)
 
     def count(self) -> int:
         if self._count is None:
@@ -784,9 +975,11 @@ class McapFrameSource(FrameSource):
         return self._count
 
     def obj_id(self, name: str) -> int:
+        """Object id from the ``batchpose`` metadata record; when a truncated log lost it, from the
+        ground-truth messages read (0 if unknown)."""
         ids = self._metadata.get(METADATA_NAME, {}).get("obj_ids")
         if not ids:
-            return 0
+            return int(self._gt_obj_ids.get(name, 0))
         try:
             return int(json.loads(ids).get(name, 0))
         except (ValueError, AttributeError):
@@ -852,8 +1045,36 @@ class _Out:
         self.w.finish()
 
 
-def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: list[str]) -> None:
-    """Calibration, ground truth and image of one frame, all at ``frame.stamp_ns``."""
+def _unwritable(frame: Frame) -> str:
+    """Why a frame's image cannot go into a log (its :attr:`Frame.error`, no bytes, or PNG/JPEG bytes
+    without a readable header); "" when it can."""
+    if frame.error is not None:
+        return str(frame.error)
+    where = frame.source or frame.frame_id
+    if not frame.image_data:
+        return f"{where}: image is empty (0 bytes)"
+    if frame.image_format not in RAW_ENCODINGS and image_size(frame.image_data) is None:
+        return f"{where}: not a readable PNG/JPEG file (cannot read its size from the header)"
+    return ""
+
+
+def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: list[str], strict: bool = True) -> None:
+    """Calibration, ground truth and image of one frame, all at ``frame.stamp_ns``.
+
+    With ``strict`` off (the poses export after a run, where such frames are already failed rows), a frame
+    whose image cannot be used is left out and a depth image that cannot be read is left out of its frame,
+    each with a warning; with it on (``convert``), both raise.
+
+    Raises:
+        BatchposeError: with ``strict``, the frame's :attr:`Frame.error`.
+        ImageError: with ``strict``, a depth image that cannot be decoded.
+    """
+    if frame.error is not None and strict:
+        raise type(frame.error)(*frame.error.args) from None
+    problem = "" if strict else _unwritable(frame)
+    if problem:
+        log.warning("%s; the frame is left out of the MCAP (its status is written)", problem)
+        return
     t = int(frame.stamp_ns)
     cam = frame.camera
     K = np.asarray(cam.K, dtype=np.float64).reshape(3, 3)
@@ -915,7 +1136,13 @@ def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: l
         )
     _timestamp(img.timestamp, t)
     out.proto(IMAGE_TOPIC, img, t)
-    depth = decode_depth(frame)
+    try:
+        depth = decode_depth(frame)
+    except ImageError as e:
+        if strict:
+            raise
+        log.warning("%s; the depth image is left out of the MCAP (the frame and its poses are written)", e)
+        depth = None
     if depth is not None:  # after the image: its channel must not come first (readers take the first image topic)
         mm = np.clip(np.rint(depth * 1000.0), 0, 65535).astype("<u2")
         d = RawImage(
@@ -1266,7 +1493,7 @@ def write_poses_mcap(
                 kind: list[str] = []
                 for frame in frames or ():
                     pw.scene(frame.stamp_ns)
-                    _write_frame(out, frame, lambda _name: 0, kind)
+                    _write_frame(out, frame, lambda _name: 0, kind, strict=False)
                     pw.image(frame.stamp_ns, frame.stamp_ns, CAMERA_FRAME_ID, frame.camera, frame.frame_id)
                 out.finish()
         os.replace(tmp, out_path)
@@ -1324,13 +1551,16 @@ def _copy_with_poses(
         elif channel.topic == src.image_topic:
             if cal is None and first is None:
                 first = src.first_calibration()
-            img = src.image(schema, channel, message)
             c = cal or first
+            try:
+                img: _Image | None = src.image(schema, channel, message)
+            except _BadMessage:  # its frame is a bad_image row (reading warned); its status still goes in
+                img = None
             cam = _camera(c, img) if c is not None else None
             pw.image(
                 message.log_time,
-                img.stamp_ns,
-                img.frame_id or CAMERA_FRAME_ID,
+                img.stamp_ns if img is not None else message.log_time,
+                (img.frame_id if img is not None else "") or CAMERA_FRAME_ID,
                 cam,
                 f"mcap:{message.log_time}",
             )

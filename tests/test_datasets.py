@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import types
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from batchpose.datasets import (
     image_size,
     open_frames,
 )
-from batchpose.errors import CameraError, ConfigError, DataError
+from batchpose.errors import CameraError, ConfigError, DataError, ImageError
 from batchpose.frames import decode_image
 
 SHARED_YCBV = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_dev"
@@ -168,6 +169,7 @@ def test_images_folder_with_distortion(tmp_path):
         ({"fov": 60}, ConfigError, "unknown key 'fov'"),
         ({"fx": "wide"}, ConfigError, "must be numbers"),
         ({"fx": -1.0}, CameraError, "focal lengths must be positive"),
+        ({"fy": True}, ConfigError, "fy must be a number, got True"),  # YAML `yes` / `true` is not 1.0
     ],
 )
 def test_images_bad_intrinsics(tmp_path, change, error, match):
@@ -232,3 +234,93 @@ def test_shared_ycbv_dev():
     assert f.frame_id == "0000/000001" and (f.camera.width, f.camera.height) == (640, 480)
     assert f.camera.K[0, 0] == pytest.approx(1066.778)
     assert "009_gelatin_box" in [g.obj_name for g in f.gt]
+
+
+# ------------------------------------------------------------------------------ one bad file, bad fields
+
+
+def test_ycbv_corrupt_meta_fails_only_its_frame(tmp_path, caplog):
+    make_ycbv(tmp_path)
+    bad = tmp_path / "data/0001/000002-meta.mat"
+    bad.write_bytes(b"MATLAB 5.0 MAT-file garbage" + bytes(range(200)))
+    src = YcbvFrameSource(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        frames = list(src)
+        list(src)  # read again (ingest, then estimation): warned once
+    assert [f.frame_id for f in frames] == ["0001/000001", "0001/000002", "data_syn/000007"]
+    assert frames[0].error is None and decode_image(frames[0]).shape == (24, 32, 3)
+    assert frames[2].error is None and len(frames[2].gt) == 1
+    assert frames[1].gt == () and not frames[1].has_depth
+    with pytest.raises(CameraError, match=r"000002-meta.mat: cannot read MATLAB file"):
+        decode_image(frames[1])  # estimate_frame turns this into a bad_camera row
+    assert caplog.text.count("000002-meta.mat: cannot read MATLAB file") == 1
+    assert "frame 0001/000002 is not estimated (bad_camera)" in caplog.text
+
+
+def test_ycbv_meta_missing_a_variable_fails_only_its_frame(tmp_path):
+    make_ycbv(tmp_path)
+    scipy.io.savemat(tmp_path / "data/0001/000001-meta.mat", {"cls_indexes": np.array([[1]], np.uint8)})
+    f0, f1, _ = YcbvFrameSource(tmp_path)
+    with pytest.raises(CameraError, match=r"000001-meta.mat: missing variable 'poses'"):
+        decode_image(f0)
+    assert f1.error is None and len(f1.gt) == 2
+
+
+def test_images_of_another_size_than_the_intrinsics_fail_decoding(tmp_path, caplog):
+    rng = np.random.default_rng(3)
+    make_images(tmp_path)  # 32x24, as the intrinsics say
+    _png(tmp_path / "img_001.png", rng, w=40, h=30)
+    _png(tmp_path / "img_002.png", rng, w=16, h=12)
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        frames = list(ImagesFrameSource(tmp_path))
+    assert decode_image(frames[0]).shape == (24, 32, 3)
+    with pytest.raises(ImageError, match=r"img_001.png: image is 40x30, the camera calibration is for 32x24"):
+        decode_image(frames[1])
+    with pytest.raises(ImageError, match=r"img_002.png: image is 16x12, the camera calibration is for 32x24"):
+        decode_image(frames[2])
+    assert "img_001.png: image is 40x30 but" in caplog.text and "fail as bad_image" in caplog.text
+
+
+def test_text_files_that_are_not_utf8(tmp_path):
+    make_images(tmp_path / "imgs")
+    intr = tmp_path / "imgs" / "intrinsics.yaml"
+    intr.write_bytes("# caméra\n".encode("latin-1") + intr.read_bytes())
+    with pytest.raises(DataError, match=r"intrinsics.yaml: not UTF-8 text \(byte 0xe9 at offset 5\)"):
+        ImagesFrameSource(tmp_path / "imgs")
+    make_ycbv(tmp_path / "ycbv")
+    (tmp_path / "ycbv" / "classes.txt").write_bytes("002_master_chef_can\n003_crème\n".encode("latin-1"))
+    with pytest.raises(DataError, match=r"classes.txt: not UTF-8 text \(byte 0xe8 at offset 26\)"):
+        YcbvFrameSource(tmp_path / "ycbv")
+    make_bop(tmp_path / "bop")
+    (tmp_path / "bop" / "000048" / "scene_gt.json").write_bytes('{"1": [], "é": []}'.encode("latin-1"))
+    with pytest.raises(DataError, match=r"scene_gt.json: not UTF-8 text"):
+        list(BopFrameSource(tmp_path / "bop"))
+
+
+@pytest.mark.parametrize(
+    ("file", "content", "match"),
+    [
+        (
+            "scene_camera.json",
+            {"1": {"cam_K": ["a"] * 9}, "2": {"cam_K": K.reshape(-1).tolist()}},
+            r"scene_camera.json: im_id 1: cam_K must be 9 numbers \(row-major 3x3\), got \['a', 'a'",
+        ),
+        (
+            "scene_camera.json",
+            {"1": {"cam_K": "123456789"}, "2": {"cam_K": K.reshape(-1).tolist()}},
+            r"scene_camera.json: im_id 1: cam_K must be 9 numbers \(row-major 3x3\), got '123456789'",
+        ),
+        (
+            "scene_gt.json",
+            [[{"obj_id": 5}]],
+            r"scene_gt.json: expected a mapping im_id -> list of object poses, got a list",
+        ),
+        ("scene_gt.json", {"first": []}, r"scene_gt.json: key 'first' is not an integer im_id"),
+        ("scene_gt.json", {"1": {"obj_id": 5}}, r"scene_gt.json: im_id 1: expected a list of object poses, got a dict"),
+    ],
+)
+def test_bop_malformed_fields_name_file_and_field(tmp_path, file, content, match):
+    make_bop(tmp_path)
+    (tmp_path / "000048" / file).write_text(json.dumps(content))
+    with pytest.raises(DataError, match=match):
+        list(BopFrameSource(tmp_path))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import base64
+import dataclasses
 import hashlib
 import io
 import json
@@ -30,6 +32,9 @@ from batchpose.errors import CameraError, ConfigError, DataError, ImageError
 from batchpose.frames import Camera, Frame, ObjectPose, decode_image
 from batchpose.mcap_io import (
     ANNOTATIONS_TOPIC,
+    DEPTH_TOPIC,
+    GT_TOPIC,
+    IMAGE_TOPIC,
     SCENE_TOPIC,
     STATUS_TOPIC,
     TF_TOPIC,
@@ -85,7 +90,9 @@ def _frames(n: int, ext: str = ".png", seed: int = 0) -> list[Frame]:
 class Log:
     """A small MCAP written with the plain mcap writer (so tests control chunking and compression)."""
 
-    def __init__(self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = "") -> None:
+    def __init__(
+        self, path: Path, chunk_size: int = 1 << 20, summary: bool = True, profile: str = "", library: str = "test"
+    ) -> None:
         self.f = open(path, "wb")  # noqa: SIM115 - closed in close()
         kw = (
             {}
@@ -99,7 +106,7 @@ class Log:
             }
         )
         self.w = Writer(self.f, chunk_size=chunk_size, compression=CompressionType.NONE, **kw)
-        self.w.start(profile=profile, library="test")
+        self.w.start(profile=profile, library=library)
         self.channels: dict[str, int] = {}
 
     def proto(self, topic: str, msg, t: int, seq: int = 0) -> None:
@@ -110,9 +117,9 @@ class Log:
             self.channels[topic], log_time=t, data=msg.SerializeToString(), publish_time=t + 7, sequence=seq
         )
 
-    def json(self, topic: str, obj, t: int) -> None:
+    def json(self, topic: str, obj, t: int, schema: str = "test.Thing") -> None:
         if topic not in self.channels:
-            sid = self.w.register_schema("test.Thing", "jsonschema", b'{"type":"object"}')
+            sid = self.w.register_schema(schema, "jsonschema", b'{"type":"object"}')
             self.channels[topic] = self.w.register_channel(topic, "json", sid, {"unit": "m/s2"})
         self.w.add_message(self.channels[topic], log_time=t, data=json.dumps(obj).encode(), publish_time=t)
 
@@ -691,3 +698,224 @@ def test_bad_image_fails_per_frame_naming_file_and_topic(tmp_path, msg, match):
     (fr,) = McapFrameSource(p)  # reading works; the frame fails when decoded (a bad_image row)
     with pytest.raises(ImageError, match=rf"enc.mcap:/cam/image: {match}"):
         decode_image(fr)
+
+
+# ---------------------------------------------------------------------- one bad message, bad fields
+
+
+def _status_times(path: Path) -> list[tuple[int, str]]:
+    return [(m[6], json.loads(m[-1])["objects"][0]["status"]) for m in _all_messages(path) if m[0] == STATUS_TOPIC]
+
+
+def test_image_message_that_does_not_parse_fails_only_its_frame(tmp_path, caplog):
+    rng = np.random.default_rng(11)
+    datas = [_enc(_img(rng), ".jpg") for _ in range(3)]
+    p = tmp_path / "garbage.mcap"
+    log_ = Log(p)
+    for i, d in enumerate(datas):
+        t = T0 + i * DT
+        log_.proto("/cam/calibration", _calib(t), t)
+        if i == 1:  # the channel exists (first image): this message's bytes are not protobuf
+            log_.w.add_message(
+                log_.channels["/cam/image"], log_time=t, data=b"\xff\xff\xff\xff garbage", publish_time=t
+            )
+        else:
+            log_.proto("/cam/image", _cimg(t, d), t)
+    log_.close()
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        src = McapFrameSource(p)
+        frames = list(src)
+        list(src)  # read again (ingest, then estimation): warned once
+    assert [f.stamp_ns for f in frames] == [T0, T0 + DT, T0 + 2 * DT]
+    assert frames[0].error is None and frames[2].image_data == datas[2]
+    np.testing.assert_array_equal(frames[1].camera.K, K1)
+    with pytest.raises(ImageError, match=rf"garbage.mcap:/cam/image: cannot decode message at log time {T0 + DT} "):
+        decode_image(frames[1])  # estimate_frame turns this into a bad_image row
+    assert caplog.text.count("cannot decode message") == 1 and "that frame fails as bad_image" in caplog.text
+    # The write-back copies the bad message too and writes every image's status.
+    out = tmp_path / "poses.mcap"
+    rows = _rows([f.stamp_ns for f in frames], rng, fail={1})
+    write_poses_mcap(out, rows, {"box": _box_glb()}, input_mcap=p)
+    assert _status_times(out) == [(T0, "ok"), (T0 + DT, "too_few_matches"), (T0 + 2 * DT, "ok")]
+
+
+def test_image_size_differs_from_calibration(tmp_path):
+    rgb = _img(np.random.default_rng(12))  # 64x48
+    p = tmp_path / "size.mcap"
+    log_ = Log(p)
+    log_.proto("/a/calibration", _calib(T0, w=32, h=24), T0)
+    log_.proto("/a/image", _cimg(T0, _enc(rgb), fmt="png"), T0)
+    log_.proto("/b/calibration", _calib(T0, w=32, h=24), T0)
+    raw = RawImage(width=W, height=H, encoding="bgr8", step=W * 3, data=rgb.tobytes())
+    raw.timestamp.FromNanoseconds(T0)
+    log_.proto("/b/image", raw, T0)
+    log_.close()
+    (compressed,) = McapFrameSource(p, image_topic="/a/image")
+    with pytest.raises(ImageError, match=r"size.mcap:/a/image: image is 64x48, the camera calibration is for 32x24"):
+        decode_image(compressed)
+    (rawf,) = McapFrameSource(p, image_topic="/b/image")  # a raw image's camera takes its size
+    with pytest.raises(
+        ImageError, match=r"size.mcap:/b/image: image is 64x48, the camera calibration on /b/calibration is for 32x24"
+    ):
+        decode_image(rawf)
+
+
+def _json_time(t: int) -> dict:
+    return {"sec": t // 1_000_000_000, "nsec": t % 1_000_000_000}
+
+
+def test_json_encoded_foxglove_image_and_calibration(tmp_path):
+    rng = np.random.default_rng(13)
+    datas = [_enc(_img(rng), ".png") for _ in range(2)]
+    p = tmp_path / "json.mcap"
+    log_ = Log(p)
+    for i, d in enumerate(datas):
+        t = T0 + i * DT
+        cal = {"timestamp": _json_time(t), "frame_id": "cam", "width": W, "height": H}
+        cal |= {"distortion_model": "plumb_bob", "D": [0.1, 0.0, 0.0, 0.0, 0.0], "K": K1.reshape(-1).tolist()}
+        log_.json("/cam/calibration", cal, t, schema="foxglove.CameraCalibration")
+        img = {"timestamp": _json_time(t + 5), "frame_id": "cam", "format": "png", "data": base64.b64encode(d).decode()}
+        log_.json("/cam/image", img, t, schema="foxglove.CompressedImage")
+    log_.close()
+    frames = list(McapFrameSource(p))
+    assert [f.image_data for f in frames] == datas and all(f.error is None for f in frames)
+    for f in frames:
+        np.testing.assert_array_equal(f.camera.K, K1)
+        np.testing.assert_array_equal(f.camera.dist, [0.1, 0.0, 0.0, 0.0, 0.0])
+        assert (f.camera.width, f.camera.height, f.camera.distortion_model) == (W, H, "plumb_bob")
+    out = tmp_path / "poses.mcap"
+    write_poses_mcap(out, _rows([f.stamp_ns for f in frames], rng, fail=set()), {"box": _box_glb()}, input_mcap=p)
+    assert _status_times(out) == [(T0, "ok"), (T0 + DT, "ok")]
+    ann = [m for m in _all_messages(out) if m[0] == ANNOTATIONS_TOPIC]
+    assert [m[6] for m in ann] == [T0, T0 + DT]  # at the images' log times, stamped with their header stamps
+
+
+def test_json_message_without_a_field_names_topic_and_encoding(tmp_path):
+    d = _enc(_img(np.random.default_rng(14)), ".png")
+    p = tmp_path / "json.mcap"
+    log_ = Log(p)
+    log_.json(
+        "/cam/calibration", {"timestamp": _json_time(T0), "width": W, "height": H}, T0, "foxglove.CameraCalibration"
+    )
+    log_.json("/cam/image", {"timestamp": _json_time(T0), "format": "png", "data": base64.b64encode(d).decode()}, T0,
+              "foxglove.CompressedImage")  # fmt: skip
+    log_.close()
+    with pytest.raises(
+        DataError,
+        match=rf"json.mcap:/cam/calibration: json-encoded foxglove.CameraCalibration message at log time {T0} "
+        r"has no field 'K'",
+    ):
+        list(McapFrameSource(p))
+    p2 = tmp_path / "json2.mcap"
+    log_ = Log(p2)
+    log_.proto("/cam/calibration", _calib(T0), T0)
+    log_.json("/cam/image", {"timestamp": _json_time(T0), "format": "png"}, T0, "foxglove.CompressedImage")
+    log_.json("/cam/image", {"timestamp": _json_time(T0), "format": "png", "data": "%%%"}, T0 + DT)
+    log_.close()
+    f0, f1 = McapFrameSource(p2)  # an image message without its pixels fails its frame only
+    with pytest.raises(
+        ImageError,
+        match=r"json2.mcap:/cam/image: json-encoded foxglove.CompressedImage message at log time \d+ "
+        r"has no field 'data'",
+    ):
+        decode_image(f0)
+    with pytest.raises(ImageError, match=r"at log time \d+ has a malformed field \(.*base64"):
+        decode_image(f1)
+
+
+def _gt_msg(t: int, objects: list[dict], **kw) -> dict:
+    return {"stamp_ns": t, "objects": objects, **kw}
+
+
+def test_ground_truth_message_without_pose_names_the_message(tmp_path):
+    p = tmp_path / "gt.mcap"
+    log_ = Log(p)
+    log_.proto("/camera/calibration", _calib(T0), T0)
+    log_.json(GT_TOPIC, _gt_msg(T0, [{"obj_name": "box", "obj_id": 2}]), T0)
+    log_.proto(IMAGE_TOPIC, _cimg(T0, _enc(_img(np.random.default_rng(15)), ".jpg")), T0)
+    log_.close()
+    with pytest.raises(
+        DataError,
+        match=rf"gt.mcap:/ground_truth/poses: batchpose.GroundTruthPoses message at log time {T0}: object 0 \(box\) "
+        r"has no cam_from_model \(16 numbers",
+    ):
+        list(McapFrameSource(p))
+
+
+def test_ground_truth_logged_after_its_image(tmp_path):
+    rng = np.random.default_rng(16)
+    poses = [_pose(rng) for _ in range(3)]
+    p = tmp_path / "late.mcap"
+    log_ = Log(p)
+    for i, T in enumerate(poses):
+        t = T0 + i * DT
+        log_.proto("/camera/calibration", _calib(t), t)
+        log_.proto(IMAGE_TOPIC, _cimg(t, _enc(_img(rng), ".jpg")), t)
+        log_.json(
+            GT_TOPIC, _gt_msg(t, [{"obj_name": "box", "cam_from_model": T.reshape(-1).tolist()}], im_id=10 + i), t
+        )
+    log_.close()
+    frames = list(McapFrameSource(p))
+    assert [f.im_id for f in frames] == [10, 11, 12]
+    for f, T in zip(frames, poses, strict=True):
+        (g,) = f.gt
+        np.testing.assert_array_equal(g.cam_from_model, T)
+
+
+def test_truncated_batchpose_log_keeps_obj_ids_from_ground_truth(tmp_path, caplog):
+    rng = np.random.default_rng(17)
+    p = tmp_path / "cut.mcap"
+    log_ = Log(p, chunk_size=2000, library="batchpose 0.1")
+    for i in range(12):
+        t = T0 + i * DT
+        log_.proto("/camera/calibration", _calib(t), t)
+        gt = [{"obj_name": "004_sugar_box", "obj_id": 3, "cam_from_model": _pose(rng).reshape(-1).tolist()}]
+        log_.json(GT_TOPIC, _gt_msg(t, gt), t)
+        log_.proto(IMAGE_TOPIC, _cimg(t, _enc(_img(rng), ".jpg")), t)
+    log_.w.add_metadata("batchpose", {"version": "0.1", "obj_ids": json.dumps({"004_sugar_box": 3})})  # at the end
+    log_.close()
+    assert McapFrameSource(p).obj_id("004_sugar_box") == 3
+    p.write_bytes(p.read_bytes()[: int(p.stat().st_size * 0.6)])
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        src = McapFrameSource(p)
+    assert src.truncated and "batchpose" not in src.metadata and len(list(src)) > 0
+    assert src.obj_id("004_sugar_box") == 3 and src.obj_id("nope") == 0
+    assert (
+        "the metadata record at its end (object ids) was lost too: object ids come from the ground-truth" in caplog.text
+    )
+
+
+def test_poses_export_leaves_out_unreadable_frames_and_depth(tmp_path, caplog):
+    depth = cv2.imencode(".png", np.full((H, W), 700, np.uint16))[1].tobytes()
+    frames = [dataclasses.replace(f, depth_format="png", depth_data=depth, depth_scale_m=0.001) for f in _frames(3)]
+    frames[1] = dataclasses.replace(frames[1], depth_data=b"")  # a 0-byte depth PNG
+    frames[2] = dataclasses.replace(frames[2], image_data=b"", camera=Camera(K1, 0, 0))  # a 0-byte colour PNG
+    t = [f.stamp_ns for f in frames]
+    out = tmp_path / "poses.mcap"
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        write_poses_mcap(out, _rows(t, np.random.default_rng(18), fail={2}), {"box": _box_glb()}, frames=iter(frames))
+    msgs = _all_messages(out)
+    assert [m[6] for m in msgs if m[0] == IMAGE_TOPIC] == t[:2]
+    assert [m[6] for m in msgs if m[0] == DEPTH_TOPIC] == t[:1]
+    assert [s for s, _ in _status_times(out)] == t  # every frame's status is there
+    assert len([m for m in msgs if m[0] == "/batchpose/poses/box"]) == 2  # the RGB poses, with or without depth
+    assert "f1 (depth): depth image is empty (0 bytes); the depth image is left out of the MCAP" in caplog.text
+    assert "f2: image is empty (0 bytes); the frame is left out of the MCAP" in caplog.text
+    # `convert` (write_frames_mcap) still refuses it: a converted log must hold every frame whole.
+    with pytest.raises(ImageError, match=r"f1 \(depth\): depth image is empty"):
+        write_frames_mcap(iter(frames[:2]), tmp_path / "conv.mcap")
+    assert not (tmp_path / "conv.mcap").exists() and not (tmp_path / "conv.mcap.tmp").exists()
+
+
+def test_poses_export_leaves_out_frames_that_could_not_be_read(tmp_path, caplog):
+    frames = _frames(2)
+    frames[1] = dataclasses.replace(frames[1], error=CameraError("f1-meta.mat: cannot read MATLAB file"))
+    t = [f.stamp_ns for f in frames]
+    out = tmp_path / "poses.mcap"
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        write_poses_mcap(out, _rows(t, np.random.default_rng(19), fail={1}), {"box": _box_glb()}, frames=iter(frames))
+    assert [m[6] for m in _all_messages(out) if m[0] == IMAGE_TOPIC] == t[:1]
+    assert [s for s, _ in _status_times(out)] == t
+    assert "f1-meta.mat: cannot read MATLAB file; the frame is left out of the MCAP" in caplog.text
+    with pytest.raises(CameraError, match="f1-meta.mat: cannot read MATLAB file"):
+        write_frames_mcap(iter(frames), tmp_path / "conv.mcap")
