@@ -6,9 +6,11 @@ Each stage is a module whose ``main`` returns the path it wrote; finished stages
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import importlib.metadata
 import json
 import logging
+import os
 import platform
 import time
 from pathlib import Path
@@ -51,6 +53,23 @@ def versions() -> dict:
         except importlib.metadata.PackageNotFoundError:
             out[pkg] = None
     return out
+
+
+@contextlib.contextmanager
+def _exclusive(run_dir: Path):
+    """Hold an exclusive lock on the run directory itself (no file is added to it) for the block: a second
+    ``batchpose run`` on the same ``--out`` stops at once instead of interleaving shards with this one."""
+    fd = os.open(run_dir, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ConfigError(
+                f"--out {run_dir}: another batchpose run is writing there; wait for it to finish or use another --out"
+            ) from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def _previous_run(run_dir: Path) -> dict | None:
@@ -178,87 +197,93 @@ def main(
     if cache_dir.exists() and not cache_dir.is_dir():
         raise ConfigError(f"--cache {cache_dir}: is a file, not a directory")
 
-    # A run directory belongs to one config and one manifest: refuse to mix results, and never write over
-    # files that are not a run's.
-    saved = run_dir / "config.yaml"
-    resolved = {"pipeline": conf_dict, "manifest": man.to_dict()}
-    previous = _previous_run(run_dir)
-    if previous is not None and not overwrite and previous != json.loads(json.dumps(resolved)):
-        raise ConfigError(
-            f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
-        )
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ConfigError(f"--out {run_dir}: is a file, not a directory")
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        _write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False))
-        _write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2))
-        _write_text_atomic(run_dir / "manifest.yaml", yaml.safe_dump(man.to_dict(), sort_keys=False))
     except OSError as e:
         raise ConfigError(f"--out {run_dir}: cannot write there ({e.strerror or e})") from None
+    with _exclusive(run_dir):
+        # A run directory belongs to one config and one manifest: refuse to mix results, and never write over
+        # files that are not a run's.
+        saved = run_dir / "config.yaml"
+        resolved = {"pipeline": conf_dict, "manifest": man.to_dict()}
+        previous = _previous_run(run_dir)
+        if previous is not None and not overwrite and previous != json.loads(json.dumps(resolved)):
+            raise ConfigError(
+                f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
+            )
+        try:
+            _write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False))
+            _write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2))
+            _write_text_atomic(run_dir / "manifest.yaml", yaml.safe_dump(man.to_dict(), sort_keys=False))
+        except OSError as e:
+            raise ConfigError(f"--out {run_dir}: cannot write there ({e.strerror or e})") from None
 
-    source = open_frames(man.frames, man.path.parent)
-    log.info("data: %s", source.describe())
-    objects = [o.name for o in man.objects]
-    ingest_frames.main(source, objects, run_dir, overwrite=overwrite, limit=limit)
+        source = open_frames(man.frames, man.path.parent)
+        log.info("data: %s", source.describe())
+        objects = [o.name for o in man.objects]
+        ingest_frames.main(source, objects, run_dir, overwrite=overwrite, limit=limit)
 
-    frames_index = pd.read_parquet(run_dir / "frames.parquet")
-    if frames_index.empty:
-        raise ConfigError(f"{man.path}: the data set has no frames")
-    if man.targets == "annotations":
-        _check_annotated(pd.read_parquet(run_dir / "gt.parquet"), objects, man.path, limit)
-    K0, width, height = _template_camera(frames_index, man.path)
-    models, lib_dirs, obj_ids = {}, {}, {}
-    t0 = time.perf_counter()
-    for spec in man.objects:
-        models[spec.name] = load_mesh(spec.mesh, conf.mesh, name=spec.name)
-        obj_ids[spec.name] = source.obj_id(spec.name)
-    lib_dirs = build_templates.build_all(models, conf, K0, width, height, cache_dir, jobs=jobs)
-    log.info("template libraries ready for %d objects in %.1f s", len(models), time.perf_counter() - t0)
-    _write_text_atomic(
-        run_dir / "objects.json",
-        json.dumps(
-            {
-                name: {
-                    "obj_id": obj_ids[name],
-                    "mesh": str(spec.mesh),
-                    "points": str(spec.points) if spec.points else None,
-                    "diameter_m": models[name].diameter_m,
-                    "library": str(lib_dirs[name]),
-                }
-                for name, spec in zip(objects, man.objects, strict=False)
-            },
-            indent=2,
-        ),
-    )
-
-    with _backend(backend, scheduler, jobs) as jl_backend:
-        poses_path = estimate_poses.main(
-            source,
-            conf,
-            conf_dict,
-            lib_dirs,
-            obj_ids,
-            {o.name: o.mesh for o in man.objects},
-            man.targets,
-            run_dir,
-            jobs=jobs,
-            backend=jl_backend,
-            overwrite=overwrite,
-            limit=limit,
-            max_pairs=max_pairs,
-            # workers on this machine share its cores; a remote cluster's workers keep their defaults
-            threads=None if scheduler else estimate_poses.threads_per_worker(jobs),
-            frame_ids=set(frames_index["frame_id"]),
+        frames_index = pd.read_parquet(run_dir / "frames.parquet")
+        if frames_index.empty:
+            raise ConfigError(f"{man.path}: the data set has no frames")
+        if man.targets == "annotations":
+            _check_annotated(pd.read_parquet(run_dir / "gt.parquet"), objects, man.path, limit)
+        K0, width, height = _template_camera(frames_index, man.path)
+        models, lib_dirs, obj_ids = {}, {}, {}
+        t0 = time.perf_counter()
+        for spec in man.objects:
+            models[spec.name] = load_mesh(spec.mesh, conf.mesh, name=spec.name)
+            obj_ids[spec.name] = source.obj_id(spec.name)
+        lib_dirs = build_templates.build_all(models, conf, K0, width, height, cache_dir, jobs=jobs)
+        log.info("template libraries ready for %d objects in %.1f s", len(models), time.perf_counter() - t0)
+        _write_text_atomic(
+            run_dir / "objects.json",
+            json.dumps(
+                {
+                    name: {
+                        "obj_id": obj_ids[name],
+                        "mesh": str(spec.mesh),
+                        "points": str(spec.points) if spec.points else None,
+                        "diameter_m": models[name].diameter_m,
+                        "library": str(lib_dirs[name]),
+                    }
+                    for name, spec in zip(objects, man.objects, strict=False)
+                },
+                indent=2,
+            ),
         )
-    if max_pairs is not None and poses_path.name != "poses.parquet":
-        return run_dir  # stopped early on purpose (resume tests)
 
-    from batchpose import bop
+        with _backend(backend, scheduler, jobs) as jl_backend:
+            poses_path = estimate_poses.main(
+                source,
+                conf,
+                conf_dict,
+                lib_dirs,
+                obj_ids,
+                {o.name: o.mesh for o in man.objects},
+                man.targets,
+                run_dir,
+                jobs=jobs,
+                backend=jl_backend,
+                overwrite=overwrite,
+                limit=limit,
+                max_pairs=max_pairs,
+                # workers on this machine share its cores; a remote cluster's workers keep their defaults
+                threads=None if scheduler else estimate_poses.threads_per_worker(jobs),
+                frame_ids=set(frames_index["frame_id"]),
+            )
+        if max_pairs is not None and poses_path.name != "poses.parquet":
+            return run_dir  # stopped early on purpose (resume tests)
 
-    csv_path = bop.write_bop_csv(pd.read_parquet(poses_path), run_dir / "poses.csv")
-    mcap_path = export_mcap.main(run_dir, poses_path, models, man.frames, source, overwrite=overwrite)
-    if report:
-        from batchpose import make_report
+        from batchpose import bop
 
-        make_report.main(run_dir, overwrite=True)
-    log.info("done in %.1f s: %s, %s", time.perf_counter() - t_start, csv_path, mcap_path)
-    return run_dir
+        csv_path = bop.write_bop_csv(pd.read_parquet(poses_path), run_dir / "poses.csv")
+        mcap_path = export_mcap.main(run_dir, poses_path, models, man.frames, source, overwrite=overwrite)
+        if report:
+            from batchpose import make_report
+
+            make_report.main(run_dir, overwrite=True)
+        log.info("done in %.1f s: %s, %s", time.perf_counter() - t_start, csv_path, mcap_path)
+        return run_dir

@@ -369,3 +369,22 @@ def test_a_rerun_with_another_limit_covers_exactly_its_frames(demo_run, tmp_path
     assert len(kept) == 2 and set(pd.read_parquet(out / "poses.parquet")["frame_id"]) <= kept
     assert set(pd.read_csv(out / "report" / "frames.csv")["frame_id"]) <= kept
     assert len(pd.read_csv(out / "poses.csv")) == len(pd.read_parquet(out / "gt.parquet"))
+
+
+def test_a_second_run_on_the_same_out_stops_at_once(tmp_path):
+    """While one run holds its --out (a lock on the folder itself), another on the same --out is one line,
+    exit 2, and writes nothing there."""
+    import fcntl
+    import os
+
+    out = tmp_path / "busy"
+    out.mkdir()
+    fd = os.open(out, os.O_RDONLY)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # what a running `batchpose run` holds
+    try:
+        args = ["run", str(PIPELINE), "--manifest", str(DEMO), "--out", str(out), "--limit", "1"]
+        r = _cli(*args, "--cache", str(tmp_path / "cache"))
+        _one_line_exit_2(r, "another batchpose run is writing there")
+        assert list(out.iterdir()) == []
+    finally:
+        os.close(fd)
