@@ -11,6 +11,7 @@ import logging
 import os
 import shutil
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -108,10 +109,21 @@ def load(lib_dir: Path) -> TemplateLibrary:
                 pts3d=z["pts3d"],
                 shapes=z["shapes"],
             )
-    except (OSError, KeyError, ValueError) as e:
-        raise DataError(
-            f"{lib_dir}: template library is unreadable ({e}); delete it or rerun with --overwrite"
-        ) from None
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
+        raise DataError(f"{lib_dir}: template library is unreadable ({e}); delete it to build it again") from None
+
+
+def _readable(lib_dir: Path) -> bool:
+    """A cached library whose files all open (a copy or a disk error can break one; saving is atomic)."""
+    try:
+        pd.read_parquet(lib_dir / "views.parquet", columns=["view_id"])
+        for name in ("templates.npz", "voxels.npz"):
+            with np.load(lib_dir / name) as z:
+                z.files  # noqa: B018 - reads the zip directory
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
+        log.warning("%s: cached template library unreadable (%s); building it again", lib_dir, e)
+        return False
+    return True
 
 
 def main(
@@ -128,7 +140,7 @@ def main(
     K_t, w, h = template_camera(conf, K, width, height)
     key = library_key(model, conf, K_t, w, h)
     out = library_dir(cache_dir, model, key)
-    if not overwrite and all((out / f).is_file() for f in FILES):
+    if not overwrite and all((out / f).is_file() for f in FILES) and _readable(out):
         log.info("Skipping %s: template library cached (%s)", model.name, out)
         return out
     if renderer is None:
@@ -141,7 +153,7 @@ def main(
         n_views = int(round(360 / conf.render.paper_azimuth_step_deg))
     with tqdm(total=n_views, desc=f"templates {model.name}", unit="view", leave=False, disable=None) as bar:
         lib = render_templates(model, K_t, w, h, conf.render, conf.features, renderer, key, bar.update)
-    if overwrite and out.exists():
+    if out.exists():  # --overwrite, or an unreadable library
         shutil.rmtree(out)
     save(lib, out, conf.weights.voxel_m)
     log.info(
@@ -181,7 +193,7 @@ def build_all(
     todo = []
     for name, model in models.items():
         d = library_dir(cache_dir, model, library_key(model, conf, K_t, w, h))
-        if all((d / f).is_file() for f in FILES):
+        if all((d / f).is_file() for f in FILES) and _readable(d):
             log.info("Skipping %s: template library cached (%s)", name, d)
             out[name] = d
         else:

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from batchpose.errors import BatchposeError
@@ -144,8 +146,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a cancelled CI job): stops the run as Ctrl-C does, workers included."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
     handler = logging.StreamHandler()
     handler.setFormatter(logging.Formatter("%(levelname)s %(message)s" if args.verbose else "%(message)s"))
     log.addHandler(handler)
@@ -156,6 +168,9 @@ def main(argv: list[str] | None = None) -> int:
     except BatchposeError as e:
         print(f"batchpose: error: {e}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("batchpose: terminated (SIGTERM); a rerun resumes", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("batchpose: interrupted", file=sys.stderr)
         return 130

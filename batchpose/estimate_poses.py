@@ -112,7 +112,12 @@ def done_pairs(shard_dir: Path) -> set[tuple[str, str]]:
     """(frame_id, obj_name) pairs already in complete shards."""
     done: set[tuple[str, str]] = set()
     for p in sorted(shard_dir.glob("shard-*.parquet")):
-        df = pd.read_parquet(p, columns=["frame_id", "obj_name"])
+        try:
+            df = pd.read_parquet(p, columns=["frame_id", "obj_name"])
+        except (OSError, ValueError) as e:  # pyarrow's errors derive from these; never a killed run's (atomic)
+            log.warning("%s: unreadable shard (%s); removed, its pairs are estimated again", p, e)
+            p.unlink()
+            continue
         done.update(zip(df["frame_id"], df["obj_name"], strict=False))
     return done
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -45,20 +46,78 @@ def _read_json(path: Path):
 def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None) -> Path:
     """Write ``run_dir/frames.parquet`` and ``run_dir/gt.parquet``; returns the frames index path.
 
+    The data set is read again on every run and compared with the index a previous run left: unchanged,
+    nothing is written; frames added or removed (or another ``--limit``), the index is rewritten and the
+    merged ``poses.parquet`` removed, so the estimate stage covers exactly the frames indexed now (finished
+    pairs are kept in their shards); a frame whose content changed under the same id is an error, since its
+    finished pairs would be stale.
+
     Args:
         source: a frame source (``batchpose.datasets.open_frames``).
         objects: object names of interest (ground truth of other objects is not kept).
         limit: index only the first ``limit`` frames.
+
+    Raises:
+        DataError: a frame's name is not UTF-8 text, or a frame changed since the run that estimated it.
     """
-    out = Path(run_dir) / "frames.parquet"
-    gt_out = Path(run_dir) / "gt.parquet"
-    # What the index covers: a rerun with another --limit indexes the frames again (and estimates only
-    # the pairs it has not yet).
-    stamp, covers = Path(run_dir) / "ingest.json", {"limit": limit}
-    if out.is_file() and gt_out.is_file() and not overwrite and _read_json(stamp) == covers:
-        log.info("Skipping ingest: %s exists", out)
-        return out
+    run_dir = Path(run_dir)
+    out, gt_out, stamp = run_dir / "frames.parquet", run_dir / "gt.parquet", run_dir / "ingest.json"
+    covers = {"limit": limit}
+    frames, gt = _index(source, objects, limit)
+    old = None if overwrite else _read_index(out, gt_out)
+    if old is not None:
+        _check_unchanged(old[0], frames, source)
+        if _read_json(stamp) == covers and _same(old[0], frames) and _same(old[1], gt):
+            log.info("Skipping ingest: %s is up to date (%d frames)", out, len(frames))
+            return out
     stamp.unlink(missing_ok=True)
+    (run_dir / "poses.parquet").unlink(missing_ok=True)  # merged for another set of frames
+    write_parquet_atomic(gt, gt_out)
+    write_parquet_atomic(frames, out)
+    tmp = stamp.with_name(stamp.name + ".tmp")
+    tmp.write_text(json.dumps(covers))
+    os.replace(tmp, stamp)
+    log.info("ingested %d frames, %d ground-truth poses of %s", len(frames), len(gt), ", ".join(objects))
+    return out
+
+
+def _read_index(out: Path, gt_out: Path) -> tuple[pd.DataFrame, pd.DataFrame] | None:
+    """The index a previous run wrote; None when there is none or it is unreadable (written again)."""
+    if not (out.is_file() and gt_out.is_file()):
+        return None
+    try:
+        return pd.read_parquet(out), pd.read_parquet(gt_out)
+    except (OSError, ValueError) as e:  # pyarrow's errors derive from these
+        log.warning("%s: unreadable (%s); indexing the frames again", out, e)
+        return None
+
+
+def _same(a: pd.DataFrame, b: pd.DataFrame) -> bool:
+    """Equal tables, list cells (K, R, t_m) compared by value: Parquet reads them back as arrays."""
+
+    def plain(df: pd.DataFrame) -> pd.DataFrame:
+        df = df.reset_index(drop=True).copy()
+        for c in df.columns:
+            if df[c].dtype == object and len(df) and not isinstance(df[c].iloc[0], str):
+                df[c] = df[c].map(lambda v: tuple(np.asarray(v, float).ravel()))
+        return df
+
+    return list(a.columns) == list(b.columns) and plain(a).equals(plain(b))
+
+
+def _check_unchanged(old: pd.DataFrame, new: pd.DataFrame, source) -> None:
+    if "crc" not in old.columns:
+        return  # written by an earlier version: no content to compare
+    both = old.merge(new, on="frame_id", suffixes=("_old", ""))
+    changed = both[both["crc_old"] != both["crc"]]
+    if len(changed):
+        raise DataError(
+            f"{source.describe()}: frame {changed['frame_id'].iloc[0]} is not the one this run estimated "
+            f"({len(changed)} frame(s) changed since); use --overwrite or another --out"
+        )
+
+
+def _index(source, objects: list[str], limit: int | None) -> tuple[pd.DataFrame, pd.DataFrame]:
     rows, gt_rows = [], []
     wanted = set(objects)
     total = source.count()
@@ -80,6 +139,7 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
                 "height": f.camera.height,
                 "K": np.asarray(f.camera.K, float).reshape(-1).tolist(),
                 "source": f.source,
+                "crc": zlib.crc32(f.depth_data, zlib.crc32(f.image_data)),
             }
         )
         for p in f.gt:
@@ -93,12 +153,7 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
                         "t_m": np.asarray(p.cam_from_model[:3, 3], float).tolist(),
                     }
                 )
-    frames = pd.DataFrame(rows, columns=["frame_id", "scene_id", "im_id", "stamp_ns", "width", "height", "K", "source"])
+    columns = ["frame_id", "scene_id", "im_id", "stamp_ns", "width", "height", "K", "source", "crc"]
+    frames = pd.DataFrame(rows, columns=columns)
     gt = pd.DataFrame(gt_rows, columns=["frame_id", "obj_name", "obj_id", "R", "t_m"])
-    write_parquet_atomic(gt, gt_out)
-    write_parquet_atomic(frames, out)
-    tmp = stamp.with_name(stamp.name + ".tmp")
-    tmp.write_text(json.dumps(covers))
-    os.replace(tmp, stamp)
-    log.info("ingested %d frames, %d ground-truth poses of %s", len(frames), len(gt), ", ".join(objects))
-    return out
+    return frames, gt

@@ -72,6 +72,26 @@ def _exclusive(run_dir: Path):
         os.close(fd)  # releases the lock
 
 
+def _mesh_hash(path: Path) -> str:
+    from batchpose.mesh import content_hash  # noqa: PLC0415
+
+    try:
+        return content_hash(path)
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read the mesh ({e.strerror or e})") from None
+
+
+#: What ``--overwrite`` removes from an earlier run (the user's other files in the folder are left alone).
+_RESULTS = ("ingest.json", "frames.parquet", "gt.parquet", "poses.parquet", "poses.csv", "poses.mcap", "objects.json")
+
+
+def _clear_results(run_dir: Path) -> None:
+    for p in sorted((run_dir / "shards").glob("shard-*.parquet")):
+        p.unlink()
+    for name in _RESULTS:
+        (run_dir / name).unlink(missing_ok=True)
+
+
 def _previous_run(run_dir: Path) -> dict | None:
     """The config of the run in ``run_dir`` (None when there is none yet); ConfigError when ``run_dir`` is a
     file, or a directory with other files in it than a run's."""
@@ -207,12 +227,26 @@ def main(
         # A run directory belongs to one config and one manifest: refuse to mix results, and never write over
         # files that are not a run's.
         saved = run_dir / "config.yaml"
-        resolved = {"pipeline": conf_dict, "manifest": man.to_dict()}
+        # The meshes' contents belong to the run too: a changed mesh makes every pose of its object stale.
+        meshes = {o.name: _mesh_hash(o.mesh) for o in man.objects}
+        resolved = {"pipeline": conf_dict, "manifest": man.to_dict(), "meshes": meshes}
         previous = _previous_run(run_dir)
-        if previous is not None and not overwrite and previous != json.loads(json.dumps(resolved)):
-            raise ConfigError(
-                f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
-            )
+        if previous is not None and not overwrite:
+            plain = json.loads(json.dumps(resolved))
+            if {k: v for k, v in previous.items() if k != "meshes"} != {
+                k: v for k, v in plain.items() if k != "meshes"
+            }:
+                raise ConfigError(
+                    f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
+                )
+            changed = [n for n, h in meshes.items() if previous.get("meshes", meshes).get(n) != h]
+            if changed:  # (a run directory of an earlier version has no mesh hashes: trusted)
+                raise ConfigError(
+                    f"{run_dir}: holds a run made with another version of the mesh of {', '.join(changed)}; "
+                    "use another --out or --overwrite"
+                )
+        if overwrite and previous is not None:
+            _clear_results(run_dir)  # before the new config is written: a killed rerun never mixes the two
         try:
             _write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False))
             _write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2))

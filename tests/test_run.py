@@ -369,6 +369,9 @@ def test_a_rerun_with_another_limit_covers_exactly_its_frames(demo_run, tmp_path
     assert len(kept) == 2 and set(pd.read_parquet(out / "poses.parquet")["frame_id"]) <= kept
     assert set(pd.read_csv(out / "report" / "frames.csv")["frame_id"]) <= kept
     assert len(pd.read_csv(out / "poses.csv")) == len(pd.read_parquet(out / "gt.parquet"))
+    run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, jobs=1)  # back to all frames: all pairs again
+    pd.testing.assert_frame_equal(_csv(out / "poses.csv"), _csv(demo_run / "poses.csv"))
+    assert sorted((out / "shards").glob("shard-*.parquet")) == shards
 
 
 def test_a_second_run_on_the_same_out_stops_at_once(tmp_path):
@@ -388,3 +391,69 @@ def test_a_second_run_on_the_same_out_stops_at_once(tmp_path):
         assert list(out.iterdir()) == []
     finally:
         os.close(fd)
+
+
+@pytest.mark.slow
+def test_stale_or_broken_results_are_never_trusted(demo_run, tmp_path, cache_dir):
+    """A broken shard is dropped and its pairs estimated again; a changed frame or mesh is refused; an
+    interrupted --overwrite leaves none of the old run's results to be taken for the new one's."""
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(demo_run, out)
+    shards = sorted((out / "shards").glob("shard-*.parquet"))
+    shards[0].write_bytes(b"")  # a disk error, a bad copy
+    run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, jobs=1)
+    pd.testing.assert_frame_equal(_csv(out / "poses.csv"), _csv(demo_run / "poses.csv"))
+
+    data, models = tmp_path / "ycbv", tmp_path / "models"
+    shutil.copytree(ROOT / "demo_data" / "ycbv", data)
+    shutil.copytree(ROOT / "demo_data" / "models", models)
+    manifest = tmp_path / "m.yaml"
+    manifest.write_text(
+        DEMO.read_text().replace("../demo_data/ycbv", str(data)).replace("../demo_data/models", str(models))
+    )
+    out = tmp_path / "copy"
+    run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1)
+    frame = sorted(data.glob("data/0000/*-color.png"))[0]
+    frame.write_bytes(sorted(data.glob("data/0000/*-color.png"))[1].read_bytes())
+    args = ["run", str(PIPELINE), "--manifest", str(manifest), "--out", str(out), "--cache", str(cache_dir)]
+    _one_line_exit_2(_cli(*args), "is not the one this run estimated (1 frame(s) changed since)")
+    with (models / "009_gelatin_box" / "textured.obj").open("a") as f:
+        f.write("# edited\n")
+    _one_line_exit_2(_cli(*args), "another version of the mesh of 009_gelatin_box")
+
+    run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1, overwrite=True, max_pairs=1)  # killed early
+    assert len(list((out / "shards").glob("shard-*.parquet"))) == 1 and not (out / "poses.parquet").exists()
+
+
+def test_sigterm_stops_the_run_and_its_workers_on_one_line(tmp_path, cache_dir):
+    """kill / timeout / a cancelled CI job: exit 143, one line, no worker left behind; a rerun resumes."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "batchpose", "run", str(PIPELINE), "--manifest", str(DEMO), "--out", str(out)]
+    cmd += ["--cache", str(cache_dir), "--jobs", "2", "--set", "track.enabled=false"]
+
+    def lokies() -> int:  # joblib's worker processes on the machine
+        ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
+        return sum("loky" in ln for ln in ps.splitlines())
+
+    before = lokies()
+    p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    lines = []
+    for line in p.stderr:
+        lines.append(line)
+        if "template libraries ready" in line:
+            time.sleep(1.0)  # estimating now
+            p.send_signal(signal.SIGTERM)
+            break
+    lines += p.stderr.readlines()
+    assert p.wait(timeout=60) == 143, "".join(lines)
+    # (loky's resource tracker, a process of its own, may still warn about semaphores after this line)
+    assert "batchpose: terminated (SIGTERM); a rerun resumes\n" in lines and "Traceback" not in "".join(lines)
+    time.sleep(2.0)
+    assert lokies() <= before
+    r = _cli(*cmd[3:])
+    assert r.returncode == 0, r.stderr
