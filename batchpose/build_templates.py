@@ -63,9 +63,19 @@ def library_dir(cache_dir: Path, model: ObjectModel, key: str) -> Path:
     return Path(cache_dir) / "templates" / f"{model.name}-{key}"
 
 
+def _remove_abandoned(out_dir: Path) -> None:
+    """Remove the half-saved copies of ``out_dir`` that killed processes left (``NAME.tmp-PID`` of a PID no
+    longer running); a live process's copy is left to it."""
+    for tmp in out_dir.parent.glob(f"{out_dir.name}.tmp-*"):
+        pid = tmp.name.rsplit("-", 1)[-1]
+        if pid.isdigit() and not Path(f"/proc/{pid}").exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
 def save(lib: TemplateLibrary, out_dir: Path, voxel_m: float) -> Path:
     """Write a library atomically (temporary folder, then rename). Returns ``out_dir``."""
     out_dir = Path(out_dir)
+    _remove_abandoned(out_dir)
     tmp = out_dir.with_name(out_dir.name + f".tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)

@@ -136,6 +136,11 @@ def load_run(run_dir: Path) -> RunData:
     run_dir = Path(run_dir)
     poses_path = run_dir / "poses.parquet"
     if not poses_path.is_file():
+        if (run_dir / "config.yaml").is_file():
+            raise DataError(
+                f"{run_dir}: the run is unfinished (no poses.parquet yet); rerun the same `batchpose run` "
+                "command to finish it (finished pairs are kept)"
+            )
         raise DataError(f"{run_dir}: no poses.parquet (is this a run directory written by `batchpose run`?)")
     poses = _read_parquet(poses_path, ("frame_id", "obj_name", "status", "R", "t_m", "confidence"))
     gt = None

@@ -332,6 +332,9 @@ def test_rerun_skips_and_overwrite_rebuilds(tmp_path, caplog):
 def test_missing_poses_is_a_data_error(tmp_path):
     with pytest.raises(DataError, match="no poses.parquet"):
         make_report.main(tmp_path)
+    (tmp_path / "config.yaml").write_text("pipeline: {}\n")  # a run killed before its poses were merged
+    with pytest.raises(DataError, match="the run is unfinished .* rerun the same `batchpose run` command"):
+        make_report.main(tmp_path)
 
 
 def test_compare(tmp_path):

@@ -51,6 +51,19 @@ def test_second_build_loads_and_renders_nothing(cracker_model, tmp_path):
     assert d3 != d1
 
 
+def test_a_damaged_or_half_saved_library_is_built_again(cracker_model, tmp_path):
+    """A cached library whose file is truncated is rendered again, not trusted; the half-saved copy a killed
+    process left (NAME.tmp-PID, PID gone) is removed when the library is saved next."""
+    conf = EstimatorConfig(render=RenderConfig(n_views=6, image_fractions=(0.5,)))
+    d = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=CountingRenderer())
+    (d / "templates.npz").write_bytes((d / "templates.npz").read_bytes()[:100])
+    abandoned = d.with_name(d.name + ".tmp-999999999")  # no such process
+    abandoned.mkdir()
+    r = CountingRenderer()
+    assert build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r) == d
+    assert r.calls == 6 and build_templates.load(d).n_views == 6 and not abandoned.exists()
+
+
 def test_missing_gl_backend_names_the_package():
     code = (
         "from batchpose.errors import RenderError\n"
