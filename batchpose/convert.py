@@ -75,6 +75,9 @@ def main(src: Path, out: Path, fmt: str, overwrite: bool = False) -> Path:
         raise ConfigError(f"{out}: already exists (pass --overwrite to replace it)")
     if any(p.exists() and not p.is_dir() for p in out.parents):
         raise ConfigError(f"{out}: a parent of it is a file, not a directory")
+    tmp = out.with_name(out.name + ".tmp")  # where the log is written before the rename
+    if tmp.exists():
+        raise ConfigError(f"{tmp}: already exists (a killed convert's, or yours?); remove or rename it first")
     source: FrameSource = open_frames({"format": fmt, "root": str(src)}, base_dir=Path.cwd())
     out.parent.mkdir(parents=True, exist_ok=True)
     total = source.count()

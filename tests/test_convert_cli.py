@@ -126,6 +126,11 @@ def test_convert_refuses_to_overwrite(tmp_path):
     assert out.read_bytes() == b"precious"
     convert.main(tmp_path / "imgs", out, "images", overwrite=True)
     assert McapFrameSource(out).count() == 2
+    tmp = tmp_path / "y.mcap.tmp"  # a file of the user's that happens to have the temporary name
+    tmp.write_bytes(b"mine too")
+    res = run_cli("convert", str(tmp_path / "imgs"), str(tmp_path / "y.mcap"), "--format", "images")
+    assert_one_line_error(res, str(tmp), "already exists", "remove or rename it first")
+    assert tmp.read_bytes() == b"mine too"
 
 
 def test_convert_zero_size_image(tmp_path):
