@@ -188,10 +188,10 @@ def main(
     for p in shard_dir.glob("*.tmp"):  # half-written shard of a killed run: never trusted
         p.unlink()
     done = done_pairs(shard_dir)
+    # (ingest removes poses.parquet whenever the frames it covers change)
     if out.is_file() and not overwrite and not _pending(source, targets_mode, done, limit, lib_dirs):
-        if frame_ids is None or set(pd.read_parquet(out, columns=["frame_id"])["frame_id"]) <= frame_ids:
-            log.info("Skipping estimation: %s is complete", out)
-            return out
+        log.info("Skipping estimation: %s is complete", out)
+        return out
     if done:
         log.info("Resuming: %d (frame, object) pairs already estimated", len(done))
     objects = list(lib_dirs)

@@ -93,12 +93,10 @@ def _clear_results(run_dir: Path) -> None:
 
 
 def _previous_run(run_dir: Path) -> dict | None:
-    """The config of the run in ``run_dir`` (None when there is none yet); ConfigError when ``run_dir`` is a
-    file, or a directory with other files in it than a run's."""
+    """The config of the run in the directory ``run_dir`` (None when there is none yet); ConfigError when it
+    has other files in it than a run's."""
     if not run_dir.exists():
         return None
-    if not run_dir.is_dir():
-        raise ConfigError(f"--out {run_dir}: is a file, not a directory")
     saved = run_dir / "config.yaml"
     if not saved.is_file():
         if any(run_dir.iterdir()):
