@@ -554,27 +554,32 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
-def from_dict(cls: type, data: dict | None, where: str = "config") -> Any:
-    """Build dataclass ``cls`` from a nested dict; unknown keys and wrong types raise ConfigError."""
+def from_dict(cls: type, data: dict | None, where: str = "config", key: str = "") -> Any:
+    """Build dataclass ``cls`` from a nested dict; unknown keys and wrong types raise ConfigError.
+
+    Errors read ``WHERE: KEY: ...`` (e.g. ``pipelines/x.yaml: gnc.kappa: expected a number``); ``key`` is the
+    dotted path of ``data`` inside the file (empty at the top).
+    """
     data = data or {}
+    at = f"{where}: {key}" if key else where
     if not isinstance(data, dict):
-        raise ConfigError(f"{where}: expected a mapping, got {type(data).__name__}")
+        raise ConfigError(f"{at}: expected a mapping, got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - set(fields))
+    unknown = sorted(set(data) - set(fields), key=str)
     if unknown:
         raise ConfigError(
-            f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} "
+            f"{at}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(map(str, unknown))} "
             f"(expected one of: {', '.join(fields)})"
         )
     kwargs = {}
     for name, value in data.items():
         tp = hints[name]
-        sub = f"{where}.{name}"
+        sub = f"{key}.{name}" if key else name
         if dataclasses.is_dataclass(tp):
-            kwargs[name] = from_dict(tp, value, sub)
+            kwargs[name] = from_dict(tp, value, where, sub)
         else:
-            kwargs[name] = _coerce(value, tp, sub)
+            kwargs[name] = _coerce(value, tp, f"{where}: {sub}")
     obj = cls(**kwargs)
     return obj
 
