@@ -459,3 +459,36 @@ def test_sigterm_stops_the_run_and_its_workers_on_one_line(tmp_path, cache_dir):
     assert lokies() <= before
     r = _cli(*cmd[3:])
     assert r.returncode == 0, r.stderr
+
+
+def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir):
+    """SIGKILL (or the OOM killer) on the run: its workers leave within seconds; a rerun resumes."""
+    import time
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "batchpose", "run", str(PIPELINE), "--manifest", str(DEMO), "--out", str(out)]
+    cmd += ["--cache", str(cache_dir), "--jobs", "2", "--set", "track.enabled=false"]
+
+    def children(pid: int) -> set[int]:
+        ps = subprocess.run(["ps", "-eo", "pid=,ppid="], capture_output=True, text=True).stdout
+        return {int(a) for a, b in (ln.split() for ln in ps.splitlines()) if int(b) == pid}
+
+    def alive(pids: set[int]) -> set[int]:
+        ps = subprocess.run(["ps", "-eo", "pid="], capture_output=True, text=True).stdout
+        return pids & {int(x) for x in ps.split()}
+
+    p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    for line in p.stderr:
+        if "template libraries ready" in line:
+            time.sleep(1.0)  # estimating now
+            break
+    workers = children(p.pid)
+    p.kill()
+    p.wait(timeout=10)
+    assert workers, "the run had no worker processes to check"
+    deadline = time.monotonic() + 15.0
+    while alive(workers) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not alive(workers), f"workers {sorted(alive(workers))} of the killed run are still running"
+    r = _cli(*cmd[3:])
+    assert r.returncode == 0, r.stderr
