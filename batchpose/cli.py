@@ -8,7 +8,9 @@ printed as one line on stderr and exits with code 2; any other exception (a bug)
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
+import shutil
 import signal
 import sys
 import threading
@@ -154,6 +156,35 @@ def _on_sigterm(signum, frame) -> None:
     raise Terminated()
 
 
+def _disk_full(args: argparse.Namespace, e: OSError) -> str:
+    """The one line for a full disk: which of the command's output folders has no room, and what to do.
+
+    A write that fails for space rarely names its file, so the command's own output folders (``--out``,
+    ``--cache``, ``report``'s run directory) are named, the fullest first.
+    """
+    named = []
+    for flag in ("out", "cache", "run_dir"):
+        value = getattr(args, flag, None)
+        if flag == "cache" and value is None and getattr(args, "func", None) is _cmd_run:
+            from batchpose.build_templates import default_cache_dir  # noqa: PLC0415
+
+            value = default_cache_dir()
+        if value is None:
+            continue
+        path = Path(value)
+        while not path.exists() and path != path.parent:
+            path = path.parent
+        try:
+            free = shutil.disk_usage(path).free
+        except OSError:
+            continue
+        label = flag.replace("_", " ") if flag == "run_dir" else f"--{flag}"
+        named.append((free, f"{label} {value} ({free / 1e6:.0f} MB free now)"))
+    where = f" writing {e.filename}" if e.filename else ""
+    disks = "; ".join(n for _, n in sorted(named)) if named else "the output folders"
+    return f"no space left on device{where}: {disks}. Free some space and rerun the same command: finished work is kept"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if threading.current_thread() is threading.main_thread():
@@ -175,6 +206,9 @@ def main(argv: list[str] | None = None) -> int:
         print("batchpose: interrupted", file=sys.stderr)
         return 130
     except OSError as e:  # a file or folder the user named that cannot be read or written
+        if e.errno in (errno.ENOSPC, errno.EDQUOT) or "No space left on device" in str(e):
+            print(f"batchpose: error: {_disk_full(args, e)}", file=sys.stderr)
+            return 2
         where = f"{e.filename}: " if e.filename else ""
         print(f"batchpose: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2

@@ -102,3 +102,20 @@ def test_batch_turns_bad_input_into_failed_records(cracker_library):
     assert out["garbage"].status == "bad_image" and "cannot decode" in out["garbage"].reason
     assert out["weird"].status == "bad_image" and "unsupported image encoding 'yuv422'" in out["weird"].reason
     assert out["nan_k"].status == "bad_camera" and "NaN" in out["nan_k"].reason
+
+
+def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
+    """A write that fails for space rarely names its file: the line names the command's folders instead."""
+    import errno
+
+    from batchpose import cli, make_report
+
+    def full(run_dir, overwrite=False):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(make_report, "main", full)
+    assert cli.main(["report", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert err[0].startswith(f"batchpose: error: no space left on device: run dir {tmp_path / 'run'} (")
+    assert err[0].endswith("MB free now). Free some space and rerun the same command: finished work is kept")
