@@ -85,6 +85,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learning-free 6D pose (GNC-Pose) of textured objects in camera logs, on CPU, in batch.",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument(
+        "--version", action=_Version, nargs=0, help="print batchpose's version and its libraries' (for bug reports)"
+    )
     sub = p.add_subparsers(dest="command", required=True)
 
     r = sub.add_parser(
@@ -146,6 +149,18 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("run_dir", help="run directory whose gt.parquet, frames.parquet and objects.json to use")
     sc.set_defaults(func=_cmd_score)
     return p
+
+
+class _Version(argparse.Action):
+    """``--version``: batchpose's version, then the versions a run records in its ``versions.json``."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        from batchpose import __version__  # noqa: PLC0415
+        from batchpose.run import versions  # noqa: PLC0415
+
+        libs = ", ".join(f"{k} {v}" for k, v in versions().items() if k not in ("batchpose", "platform") and v)
+        print(f"batchpose {__version__} ({libs})")
+        parser.exit()
 
 
 class Terminated(KeyboardInterrupt):

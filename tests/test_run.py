@@ -180,6 +180,12 @@ def test_bad_manifest_or_pipeline_is_one_line_exit_2(tmp_path, manifest, pipelin
     assert expect in lines[0]
 
 
+def test_version_names_batchpose_and_its_libraries():
+    r = _cli("--version")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("batchpose 0.") and "opencv-python-headless " in r.stdout and "mcap " in r.stdout
+
+
 def test_help_lists_every_command():
     r = _cli("--help")
     assert r.returncode == 0
