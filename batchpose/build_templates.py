@@ -23,6 +23,7 @@ from batchpose.errors import DataError
 from batchpose.mesh import ObjectModel
 from batchpose.templates import TemplateLibrary, render_templates
 from batchpose.weights import model_voxel_grid
+from batchpose.workers import loky_options
 
 log = logging.getLogger("batchpose")
 
@@ -209,9 +210,11 @@ def build_all(
         else:
             todo.append(name)
     if len(todo) > 1 and jobs > 1:
-        dirs = joblib.Parallel(n_jobs=min(jobs, len(todo)), backend="loky")(
-            joblib.delayed(_build_in_worker)(str(models[n].path), n, conf, K, width, height, cache_dir) for n in todo
-        )
+        with joblib.parallel_config(backend="loky", **loky_options()):
+            dirs = joblib.Parallel(n_jobs=min(jobs, len(todo)))(
+                joblib.delayed(_build_in_worker)(str(models[n].path), n, conf, K, width, height, cache_dir)
+                for n in todo
+            )
         out.update(zip(todo, dirs, strict=True))
     else:
         for n in todo:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import os
-import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -26,6 +25,7 @@ from batchpose.estimate import PoseEstimator
 from batchpose.frames import Frame
 from batchpose.ingest_frames import write_parquet_atomic
 from batchpose.mesh import load_mesh
+from batchpose.workers import loky_options
 
 log = logging.getLogger("batchpose")
 
@@ -79,32 +79,6 @@ def limit_threads(threads: int | None) -> None:
     cv2.setNumThreads(threads)
     os.environ["LP_NUM_THREADS"] = str(threads)
     _WORKER["threads"] = threads
-
-
-def watch_parent(parent_pid: int, every_s: float = 1.0) -> None:
-    """Worker initializer: leave when the run that started this worker is gone.
-
-    A ``batchpose run`` killed outright (SIGKILL, the OOM killer) cannot stop its loky workers, which would
-    otherwise finish their task and wait for the next one for good (loky's idle timeout does not fire:
-    the dead run's queues never report empty). A daemon thread checks once a ``every_s`` whether the
-    worker's parent is still ``parent_pid`` and ends the process when it is not; the dead run's unsaved
-    results are lost either way and are estimated again by a rerun.
-    """
-    if os.getppid() != parent_pid:
-        try:
-            os.kill(parent_pid, 0)
-        except ProcessLookupError:  # the run died while this worker started
-            os._exit(1)
-        except OSError:
-            pass
-        return  # not started by the run itself (e.g. a dask nanny's worker): nothing to watch
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(every_s)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="batchpose-watch-parent", daemon=True).start()
 
 
 def threads_per_worker(jobs: int) -> int | None:
@@ -236,7 +210,7 @@ def main(
     )
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)
     try:
-        loky = {"initializer": watch_parent, "initargs": (os.getpid(),)} if backend == "loky" else {}
+        loky = loky_options() if backend == "loky" else {}
         with joblib.parallel_config(backend=backend, n_jobs=jobs if backend == "loky" else -1, **loky):
             # Unordered: each task's shard is written as soon as it is done, not held behind a slower task
             # dispatched earlier (a killed run keeps it; merge_shards orders the rows).

@@ -467,13 +467,17 @@ def test_sigterm_stops_the_run_and_its_workers_on_one_line(tmp_path, cache_dir):
     assert r.returncode == 0, r.stderr
 
 
-def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir):
-    """SIGKILL (or the OOM killer) on the run: its workers leave within seconds; a rerun resumes."""
+@pytest.mark.parametrize("stage", ["templates", "estimate"])
+def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir, stage):
+    """SIGKILL (or the OOM killer) on the run, while its workers build the template libraries or estimate:
+    they leave within seconds; a rerun resumes."""
     import time
 
     out = tmp_path / "run"
+    cache = tmp_path / "cache" if stage == "templates" else cache_dir  # an empty cache: the libraries are built
     cmd = [sys.executable, "-m", "batchpose", "run", str(PIPELINE), "--manifest", str(DEMO), "--out", str(out)]
-    cmd += ["--cache", str(cache_dir), "--jobs", "2", "--set", "track.enabled=false"]
+    cmd += ["--cache", str(cache), "--jobs", "2", "--set", "track.enabled=false"]
+    wait_for = "ingested" if stage == "templates" else "template libraries ready"
 
     def children(pid: int) -> set[int]:
         ps = subprocess.run(["ps", "-eo", "pid=,ppid="], capture_output=True, text=True).stdout
@@ -485,8 +489,8 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir):
 
     p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     for line in p.stderr:
-        if "template libraries ready" in line:
-            time.sleep(1.0)  # estimating now
+        if wait_for in line:
+            time.sleep(2.0)  # the workers are rendering templates, or estimating, now
             break
     workers = children(p.pid)
     p.kill()
