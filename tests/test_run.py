@@ -470,7 +470,7 @@ def test_sigterm_stops_the_run_and_its_workers_on_one_line(tmp_path, cache_dir):
 @pytest.mark.parametrize("stage", ["templates", "estimate"])
 def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir, stage):
     """SIGKILL (or the OOM killer) on the run, while its workers build the template libraries or estimate:
-    they leave within seconds; a rerun resumes."""
+    they leave within seconds."""
     import time
 
     out = tmp_path / "run"
@@ -500,5 +500,4 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir, stage):
     while alive(workers) and time.monotonic() < deadline:
         time.sleep(0.5)
     assert not alive(workers), f"workers {sorted(alive(workers))} of the killed run are still running"
-    r = _cli(*cmd[3:])
-    assert r.returncode == 0, r.stderr
+    # (that a killed run resumes: test_killed_run_resumes_without_redoing_work)
