@@ -490,8 +490,11 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir, stage):
     p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     for line in p.stderr:
         if wait_for in line:
-            time.sleep(2.0)  # the workers are rendering templates, or estimating, now
             break
+    deadline = time.monotonic() + 60.0  # the two workers and loky's resource tracker(s) start
+    while len(children(p.pid)) < 3 and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)  # the workers are rendering templates, or estimating, now
     workers = children(p.pid)
     p.kill()
     p.wait(timeout=10)
