@@ -124,8 +124,11 @@ def load(lib_dir: Path) -> TemplateLibrary:
         raise DataError(f"{lib_dir}: template library is unreadable ({e}); delete it to build it again") from None
 
 
-def _readable(lib_dir: Path) -> bool:
-    """A cached library whose files all open (a copy or a disk error can break one; saving is atomic)."""
+def _cached(lib_dir: Path) -> bool:
+    """A cached library with all its files, each of which opens (a copy or a disk error can break one;
+    saving is atomic)."""
+    if not all((lib_dir / f).is_file() for f in FILES):
+        return False
     try:
         pd.read_parquet(lib_dir / "views.parquet", columns=["view_id"])
         for name in ("templates.npz", "voxels.npz"):
@@ -151,7 +154,7 @@ def main(
     K_t, w, h = template_camera(conf, K, width, height)
     key = library_key(model, conf, K_t, w, h)
     out = library_dir(cache_dir, model, key)
-    if not overwrite and all((out / f).is_file() for f in FILES) and _readable(out):
+    if not overwrite and _cached(out):
         log.info("Skipping %s: template library cached (%s)", model.name, out)
         return out
     if renderer is None:
@@ -204,7 +207,7 @@ def build_all(
     todo = []
     for name, model in models.items():
         d = library_dir(cache_dir, model, library_key(model, conf, K_t, w, h))
-        if all((d / f).is_file() for f in FILES) and _readable(d):
+        if _cached(d):
             log.info("Skipping %s: template library cached (%s)", name, d)
             out[name] = d
         else:

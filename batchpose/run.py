@@ -231,9 +231,7 @@ def main(
         previous = _previous_run(run_dir)
         if previous is not None and not overwrite:
             plain = json.loads(json.dumps(resolved))
-            if {k: v for k, v in previous.items() if k != "meshes"} != {
-                k: v for k, v in plain.items() if k != "meshes"
-            }:
+            if {**previous, "meshes": None} != {**plain, "meshes": None}:
                 raise ConfigError(
                     f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
                 )
