@@ -193,7 +193,8 @@ def _disk_full(args: argparse.Namespace, e: OSError) -> str:
             free = shutil.disk_usage(path).free
         except OSError:
             continue
-        label = flag.replace("_", " ") if flag == "run_dir" else f"--{flag}"
+        positional = flag == "run_dir" or (flag == "out" and getattr(args, "func", None) is _cmd_convert)
+        label = {"run_dir": "run dir", "out": "output"}[flag] if positional else f"--{flag}"
         named.append((free, f"{label} {value} ({free / 1e6:.0f} MB free now)"))
     where = f" writing {e.filename}" if e.filename else ""
     disks = "; ".join(n for _, n in sorted(named)) if named else "the output folders"

@@ -119,3 +119,11 @@ def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
     assert len(err) == 1, err
     assert err[0].startswith(f"batchpose: error: no space left on device: run dir {tmp_path / 'run'} (")
     assert err[0].endswith("MB free now). Free some space and rerun the same command: finished work is kept")
+
+    from batchpose import convert
+
+    monkeypatch.setattr(convert, "main", lambda src, out, fmt, overwrite=False: full(out))
+    out = tmp_path / "log.mcap"
+    assert cli.main(["convert", str(tmp_path), str(out), "--format", "images"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"batchpose: error: no space left on device: output {out} ("), err
