@@ -130,12 +130,14 @@ def nearest_with_rival(desc_q: np.ndarray, lib_index, lib: TemplateLibrary, conf
 
 
 def vote_views(
-    desc_q: np.ndarray, lib_index, lib: TemplateLibrary, n_views: int, conf: MatchConfig, mask=None
+    desc_q: np.ndarray, lib_index, lib: TemplateLibrary, n_views: int, conf: MatchConfig, mask=None, nearest=None
 ) -> np.ndarray:
     """The ``n_views`` views with the most frame keypoints matched into them.
 
     Each frame keypoint votes for the view of its nearest template descriptor when it passes a loose
     ratio test (``conf.prefilter_ratio``) against the nearest descriptor of a different 3D point.
+
+    ``nearest``: :func:`nearest_with_rival` of all of ``desc_q`` (default ``k``) when the caller has it.
 
     Returns:
         (n_views,) int view ids, most votes first.
@@ -143,7 +145,10 @@ def vote_views(
     q = desc_q if mask is None else desc_q[mask]
     if lib_index is None or len(q) == 0:
         return np.arange(min(n_views, lib.n_views))
-    idx, dist, rival = nearest_with_rival(q, lib_index, lib, conf)
+    if nearest is None:
+        idx, dist, rival = nearest_with_rival(q, lib_index, lib, conf)
+    else:
+        idx, dist, rival = (a if mask is None else a[mask] for a in nearest)
     ok = dist[:, 0] < conf.prefilter_ratio * rival
     votes = np.bincount(lib.view_ids[idx[ok, 0]], minlength=lib.n_views)
     return np.argsort(-votes, kind="stable")[:n_views]
@@ -224,6 +229,7 @@ def locate(
     angle_bin_deg: float = 30.0,
     min_votes: int = 4,
     peaks: int = 1,
+    nearest=None,
 ) -> list[Location]:
     """Where the object is, by Hough voting (Lowe 2004, §7): each frame keypoint matched into the library
     predicts the object's image centre, size and in-plane rotation from the template keypoint's position,
@@ -237,6 +243,8 @@ def locate(
     one octave of size and ``angle_bin_deg`` of rotation (0: rotation not voted on), each into the two
     nearest cells per dimension. Chance matches scatter; the object's own pairs agree.
 
+    ``nearest``: :func:`nearest_with_rival` of ``desc_q`` (default ``k``) when the caller has it.
+
     Returns:
         Up to ``peaks`` locations, fullest first, each with at least ``min_votes`` agreeing votes: the
         fullest cell's (the medians of its agreeing votes, and those votes' pairs), then the fullest
@@ -244,7 +252,7 @@ def locate(
     """
     if lib_index is None or len(desc_q) == 0 or len(lib.shapes) != len(lib.desc):
         return []
-    idx, dist, rival = nearest_with_rival(desc_q, lib_index, lib, conf)
+    idx, dist, rival = nearest_with_rival(desc_q, lib_index, lib, conf) if nearest is None else nearest
     q = np.nonzero(dist[:, 0] < ratio * rival)[0]
     if len(q) < min_votes:
         return []

@@ -21,6 +21,7 @@ from batchpose.correspondences import (
     locate,
     match_query_to_template,
     match_template_to_query,
+    nearest_with_rival,
     template_to_query_candidates,
     top_k_pairs,
     vote_views,
@@ -144,6 +145,8 @@ class PoseEstimator:
         self._sift = make_sift(conf.features)
         self._sift_retry = None
         self._lib_index: dict[str, object] = {}
+        # This image's nearest template descriptors of a keypoint set, per object: [(descriptors, result)].
+        self._nearest: dict[str, list[tuple[np.ndarray, tuple]]] = {}
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flip_cache: dict[str, list[np.ndarray]] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
@@ -179,6 +182,20 @@ class PoseEstimator:
             self._lib_index[name] = flann_index(self.libraries[name].desc, self.conf.match)
         return self._lib_index[name]
 
+    def _nearest_templates(self, name: str, desc_q: np.ndarray) -> tuple:
+        """:func:`nearest_with_rival` of ``desc_q`` into the object's library, computed once per keypoint set
+        of the image (the view vote and the locator ask for the same; each query is independent, so the
+        result is the same). None without keypoints or library."""
+        if len(desc_q) == 0 or self._library_index(name) is None:
+            return None
+        seen = self._nearest.setdefault(name, [])
+        for desc, found in seen:
+            if desc is desc_q:
+                return found
+        found = nearest_with_rival(desc_q, self._library_index(name), self.libraries[name], self.conf.match)
+        seen.append((desc_q, found))  # holding the array: its identity cannot pass to another one
+        return found
+
     def _model_voxels(self, name: str):
         if name not in self._voxels:
             self._voxels[name] = model_voxel_grid(self.libraries[name].pts3d, self.conf.weights.voxel_m)
@@ -212,6 +229,7 @@ class PoseEstimator:
         """
         camera.validate(frame_id)
         check_image(rgb, frame_id)
+        self._nearest.clear()
         for name in obj_names:
             if name not in self.libraries:
                 raise BatchposeError(f"{frame_id}: no template library for object {name!r}")
@@ -349,6 +367,7 @@ class PoseEstimator:
                     angle_bin_deg=conf.fine.locate_angle_deg,
                     min_votes=conf.fine.locate_votes,
                     peaks=conf.fine.locate_peaks,
+                    nearest=self._nearest_templates(name, desc_q),
                 ):
                     c, half = np.asarray(found.centre_xy), 0.5 * found.size_px  # a square of the object's diameter
                     hough = _grown_box(c - half, c + half, conf.fine, camera)
@@ -493,7 +512,8 @@ class PoseEstimator:
         lib = self.libraries[name]
         if not n_views or n_views >= lib.n_views:
             return None
-        return vote_views(desc_q, self._library_index(name), lib, n_views, self.conf.match, roi)
+        nearest = self._nearest_templates(name, desc_q)
+        return vote_views(desc_q, self._library_index(name), lib, n_views, self.conf.match, roi, nearest)
 
     def _coarse(self, name, xy_q, desc_q, query_index, roi, camera: Camera, timings: dict[str, float], quick=False):
         """The whole-frame pass: (result, pairs). With ``match.first_views``, the most-voted views are

@@ -12,7 +12,7 @@ resampled means do. The interval assumes the pairs are independent draws, as hel
 consecutive frames of one video (ycbv_dev) are not, and their intervals come out too narrow.
 
 Usage:
-    .venv/bin/python benchmarks/pooled.py RUN [RUN ...] [--boot 2000] [--seed 0]
+    .venv/bin/python benchmarks/pooled.py RUN [RUN ...] [--boot 2000] [--seed 0] [--objects NAME ...]
 """
 
 from __future__ import annotations
@@ -69,10 +69,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("runs", nargs="+", type=Path, help="batchpose run output directories (with report/frames.csv)")
     ap.add_argument("--boot", type=int, default=2000, help="bootstrap resamples (default 2000)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the resampling (default 0)")
+    ap.add_argument(
+        "--objects", nargs="+", help="pool only these objects (e.g. benchmarks/tabletop.py's inserted ones)"
+    )
     args = ap.parse_args(argv)
     if args.boot < 100:
         sys.exit(f"error: --boot {args.boot} is too few resamples for a 95 % interval (use at least 100)")
     pairs = load(args.runs)
+    if args.objects:
+        unknown = sorted(set(args.objects) - set(pairs.obj_name))
+        if unknown:
+            sys.exit(f"error: --objects {', '.join(unknown)}: not in these runs")
+        pairs = pairs[pairs.obj_name.isin(args.objects)]
     objects = sorted(pairs.obj_name.unique())
     boot = bootstrap(pairs, args.boot, np.random.default_rng(args.seed))
 

@@ -254,3 +254,52 @@ def test_warm_up_builds_every_library_index_before_the_first_frame(cracker_model
     est.warm_up()
     assert list(est._lib_index) == [cracker_model.name] and est._lib_index[cracker_model.name] is not None
     assert renders == [cracker_model.content_hash]
+
+
+def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_library, monkeypatch):
+    """The view vote and the locator ask the library for the same nearest descriptors: given the one
+    query's result they vote and locate exactly as when each queries itself (also under an ROI mask), and
+    the estimator queries each keypoint set of an image once."""
+    import batchpose.estimate as est_mod  # noqa: PLC0415
+    from batchpose.correspondences import flann_index, locate, nearest_with_rival, vote_views  # noqa: PLC0415
+    from batchpose.features import detect_shapes  # noqa: PLC0415
+
+    rng = np.random.default_rng(5)
+    T = random_pose(rng, cracker_model.center_m)
+    img = compose(rng, cracker_model, T)
+    conf = EstimatorConfig()
+    lib, mc = cracker_library, conf.match
+    index = flann_index(lib.desc, mc)
+    xy, desc, shapes = detect_shapes(to_gray(img), conf.features)
+    nearest = nearest_with_rival(desc, index, lib, mc)
+    mask = xy[:, 0] < 320
+    for m in (None, mask):
+        np.testing.assert_array_equal(
+            vote_views(desc, index, lib, 32, mc, m), vote_views(desc, index, lib, 32, mc, m, nearest)
+        )
+    own, shared = (locate(xy, shapes, desc, index, lib, mc, 640, 480, nearest=n) for n in (None, nearest))
+    assert len(own) == len(shared) == 1 and own[0].centre_xy == shared[0].centre_xy and own[0].votes == shared[0].votes
+
+    queried: list[int] = []
+
+    def spy(desc_q, *a, **k):
+        queried.append(id(desc_q))
+        return nearest_with_rival(desc_q, *a, **k)
+
+    located: list[int] = []
+
+    def spy_locate(xy_q, shapes_q, desc_q, *a, **k):
+        located.append(id(desc_q))
+        return locate(xy_q, shapes_q, desc_q, *a, **k)
+
+    monkeypatch.setattr(est_mod, "nearest_with_rival", spy)
+    monkeypatch.setattr(est_mod, "locate", spy_locate)
+    # Never strong, always weak: the fine pass and the locator run.
+    weak = dataclasses.replace(conf, strong_inliers=0, fine=dataclasses.replace(conf.fine, locate_below=1.0))
+    est = PoseEstimator(
+        weak, {cracker_model.name: lib}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
+    )
+    rec = est.estimate_image(img, Camera(K_SYN, 640, 480), [cracker_model.name])[0]
+    assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
+    assert located and set(located) <= set(queried), (located, queried)  # the locator reused the vote's query
+    assert len(queried) == len(set(queried)), queried
