@@ -52,6 +52,10 @@ ALL = (
 SCENE = 1  # ycbv_dev's video 0001
 
 
+#: Frames drawn for one placement before giving up (the seeds' draws are unchanged where the first fits).
+FRAME_TRIES = 20
+
+
 def stand(model, faces, plane, real: dict, K, w, h, rng, renderer, sensor: np.ndarray):
     """A random resting pose on the plane, in view and clear of the real objects; (T, rgb, visible depth) or
     None after 200 tries."""
@@ -106,20 +110,23 @@ def generate(out: Path, objects: list[str], n: int, seed: int) -> tuple[Path, Pa
         (scene / "depth").mkdir(parents=True, exist_ok=True)
         cams, gts = {}, {}
         for i in range(n):
-            f = frames[rng.integers(len(frames))]
-            K, w, h = f.camera.K, f.camera.width, f.camera.height
-            gt = {g.obj_name: g.cam_from_model for g in f.gt if g.obj_name in meshes}
-            plane = support_plane({o: (T, meshes[o].mesh.convex_hull) for o, T in gt.items()}, conf)
-            if plane is None:
-                raise SystemExit(f"{f.frame_id}: the ground-truth objects do not rest on one plane")
-            real = {
-                o: (T[:3, :3] @ meshes[o].mesh.bounding_box.centroid + T[:3, 3], meshes[o].diameter_m)
-                for o, T in gt.items()
-            }
-            bg, sensor = decode_image(f), decode_depth(f)
-            placed = stand(model, faces, plane, real, K, w, h, rng, renderer, sensor)
-            if placed is None:
-                raise SystemExit(f"{name}: no free place on the table of {f.frame_id}")
+            for _ in range(FRAME_TRIES):  # a large object may find no free place in one frame: draw another
+                f = frames[rng.integers(len(frames))]
+                K, w, h = f.camera.K, f.camera.width, f.camera.height
+                gt = {g.obj_name: g.cam_from_model for g in f.gt if g.obj_name in meshes}
+                plane = support_plane({o: (T, meshes[o].mesh.convex_hull) for o, T in gt.items()}, conf)
+                if plane is None:
+                    raise SystemExit(f"{f.frame_id}: the ground-truth objects do not rest on one plane")
+                real = {
+                    o: (T[:3, :3] @ meshes[o].mesh.bounding_box.centroid + T[:3, 3], meshes[o].diameter_m)
+                    for o, T in gt.items()
+                }
+                bg, sensor = decode_image(f), decode_depth(f)
+                placed = stand(model, faces, plane, real, K, w, h, rng, renderer, sensor)
+                if placed is not None:
+                    break
+            else:
+                raise SystemExit(f"{name}: no free place on the table in {FRAME_TRIES} frames drawn")
             T, rgb, depth = placed
             img, z = compose(bg, rgb, depth, None, rng, sensor, np.random.default_rng([seed, obj_ids[name], i]))
             im_id = 2 * i
