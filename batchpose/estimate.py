@@ -512,7 +512,8 @@ class PoseEstimator:
         lib = self.libraries[name]
         if not n_views or n_views >= lib.n_views:
             return None
-        nearest = self._nearest_templates(name, desc_q)
+        # Shared with the locator, which runs without an ROI only; under one, query just the ROI's keypoints.
+        nearest = self._nearest_templates(name, desc_q) if roi is None else None
         return vote_views(desc_q, self._library_index(name), lib, n_views, self.conf.match, roi, nearest)
 
     def _coarse(self, name, xy_q, desc_q, query_index, roi, camera: Camera, timings: dict[str, float], quick=False):
