@@ -1,7 +1,7 @@
 """Where a run's misses are lost: in the template library, or in the frame's keypoints themselves?
 
 For each (frame, object) pair of a finished run that has ground truth, the frame's SIFT keypoints (the
-run's feature settings) inside the object's projected box are matched, by nearest descriptor, against
+run's feature settings) on the object's ground-truth silhouette are matched, by nearest descriptor, against
 
 - ``library``: the run's template library (every view, both distances), and
 - ``exact``: a template rendered at the ground-truth pose itself (the run's shading, the frame's camera)
@@ -78,6 +78,7 @@ def main() -> int:
     print(f"# matchability: {machine()}; code {code_version()}; run {args.run}")
 
     counts: dict[tuple[str, bool], list[np.ndarray]] = {}
+    pairs = dict.fromkeys(names, 0)
     man = load_manifest(args.manifest)
     for frame in open_frames(man.frames, man.path.parent):
         here = gt[(gt["frame_id"] == frame.frame_id) & gt["obj_name"].isin(names)]
@@ -86,7 +87,7 @@ def main() -> int:
         gray = None
         for g in here.itertuples():
             row = scored[(scored["frame_id"] == frame.frame_id) & (scored["obj_name"] == g.obj_name)]
-            if row.empty or (args.limit and sum(len(v) for k, v in counts.items() if k[0] == g.obj_name) >= args.limit):
+            if row.empty or (args.limit and pairs[g.obj_name] >= args.limit):
                 continue
             row = row.iloc[0]
             found = row["status"] == "ok" and row["adds_m"] <= 0.1 * row["diameter_m"]
@@ -102,8 +103,7 @@ def main() -> int:
             render, depth = renderer.render(
                 model.content_hash, model.mesh, T, K, w, h, conf.render.shading, conf.render.znear_m, conf.render.zfar_m
             )
-            ys, xs = np.nonzero(depth > 0)
-            if len(xs) == 0:
+            if not (depth > 0).any():
                 continue
             col = np.clip(np.rint(xy[:, 0]).astype(int), 0, w - 1)
             line = np.clip(np.rint(xy[:, 1]).astype(int), 0, h - 1)
@@ -118,6 +118,7 @@ def main() -> int:
                 ]
             )
             counts.setdefault((g.obj_name, bool(found)), []).append(n)
+            pairs[g.obj_name] += 1
 
     rows = []
     for (name, found), ns in sorted(counts.items()):
