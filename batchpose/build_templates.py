@@ -183,7 +183,8 @@ def main(
 def _build_in_worker(mesh_path: str, name: str, conf: EstimatorConfig, K, width, height, cache_dir) -> Path:
     from batchpose.mesh import load_mesh  # noqa: PLC0415
 
-    return main(load_mesh(Path(mesh_path), conf.mesh, name=name), conf, K, width, height, cache_dir)
+    model = load_mesh(Path(mesh_path), conf.mesh, name=name, cache_dir=cache_dir)
+    return main(model, conf, K, width, height, cache_dir)
 
 
 def build_all(

@@ -33,9 +33,14 @@ _WORKER: dict = {}
 
 
 def _estimator(
-    conf_dict: dict, lib_dirs: dict[str, str], obj_ids: dict[str, int], mesh_paths: dict[str, str]
+    conf_dict: dict,
+    lib_dirs: dict[str, str],
+    obj_ids: dict[str, int],
+    mesh_paths: dict[str, str],
+    mesh_cache: str | None = None,
 ) -> PoseEstimator:
-    """The worker's estimator, built on first use and kept for the rest of the run."""
+    """The worker's estimator, built on first use and kept for the rest of the run (``mesh_cache``: the
+    cache folder :func:`batchpose.mesh.load_mesh` keeps loaded meshes in, or None)."""
     key = config_hash(conf_dict, lib_dirs, mesh_paths)
     if _WORKER.get("key") != key:
         conf = load_estimator_config(conf_dict)
@@ -44,7 +49,8 @@ def _estimator(
         if conf.refine.enabled or conf.track.enabled:
             from batchpose.render import get_renderer
 
-            models = {name: load_mesh(Path(p), conf.mesh, name=name) for name, p in mesh_paths.items()}
+            cache = Path(mesh_cache) if mesh_cache else None
+            models = {name: load_mesh(Path(p), conf.mesh, name=name, cache_dir=cache) for name, p in mesh_paths.items()}
             renderer = get_renderer()
         _WORKER["key"] = key
         _WORKER["estimator"] = PoseEstimator(conf, libs, obj_ids, models=models, renderer=renderer)
@@ -97,11 +103,12 @@ def estimate_chunk(
     obj_ids: dict[str, int],
     mesh_paths: dict[str, str],
     threads: int | None = None,
+    mesh_cache: str | None = None,
 ) -> list[dict]:
     """Worker task: estimate the given objects in each frame; returns ``poses.parquet`` rows."""
     _relax_loky_leak_check()
     limit_threads(threads)
-    est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths)
+    est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths, mesh_cache)
     est.reset_tracks()  # a track never crosses tasks: results do not depend on how tasks meet workers
     rows = []
     for frame, names in zip(frames, targets, strict=False):
@@ -164,6 +171,7 @@ def main(
     max_pairs: int | None = None,
     threads: int | None = None,
     frame_ids: set[str] | None = None,
+    mesh_cache: Path | None = None,
 ) -> Path:
     """Estimate poses for all frames of ``source``; returns ``run_dir/poses.parquet``.
 
@@ -177,6 +185,7 @@ def main(
         threads: OpenCV / renderer threads per worker (see :func:`limit_threads`; None: their defaults).
         frame_ids: the frames this run covers (``frames.parquet``); shards of other frames (an earlier
             run with a larger ``--limit``) stay on disk but are left out of ``poses.parquet``.
+        mesh_cache: the cache folder workers load meshes through (:func:`batchpose.mesh.load_mesh`).
     """
     run_dir = Path(run_dir)
     out = run_dir / "poses.parquet"
@@ -198,6 +207,7 @@ def main(
     objects = list(lib_dirs)
     lib_strs = {k: str(v) for k, v in lib_dirs.items()}
     mesh_strs = {k: str(v) for k, v in mesh_paths.items()}
+    cache = str(mesh_cache) if mesh_cache else None
     if conf.track.enabled:
         chunk_size = max(chunk_size, conf.track.chunk_frames)
     n_shards = len(list(shard_dir.glob("shard-*.parquet")))
@@ -205,7 +215,7 @@ def main(
     t0 = time.perf_counter()
     new_pairs = 0
     tasks = (
-        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs, threads)
+        joblib.delayed(estimate_chunk)(f, t, conf_dict, lib_strs, obj_ids, mesh_strs, threads, cache)
         for f, t in _chunks(source, objects, targets_mode, done, chunk_size, limit)
     )
     bar = tqdm(desc="estimate", unit="frame", total=total, initial=0, leave=False, disable=None)

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
+import os
+import pickle
 import re
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +24,9 @@ from batchpose.errors import MeshError
 log = logging.getLogger("batchpose")
 
 _REF_RE = re.compile(rb"^\s*(?:mtllib|map_Kd|map_Ka)\s+(.+?)\s*$", re.MULTILINE)
+
+#: Bump when what :func:`load_mesh` makes of a file changes, so cached meshes are not reused.
+MESH_CACHE_FORMAT = 1
 
 
 @dataclass(frozen=True)
@@ -148,8 +155,16 @@ def unit_scale(path: Path, bounds: np.ndarray, conf: MeshConfig = MeshConfig()) 
     return 0.001 if units == "mm" else 1.0
 
 
-def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = None) -> ObjectModel:
+def load_mesh(
+    path: Path, conf: MeshConfig = MeshConfig(), name: str | None = None, cache_dir: Path | None = None
+) -> ObjectModel:
     """Load a textured mesh and bring it to metres.
+
+    With ``cache_dir``, the loaded mesh (texture already downscaled) is kept in ``cache_dir/meshes`` under
+    a key of the files' content and the mesh settings, and later loads of the same files read it from there
+    (~20 ms instead of ~0.7 s of OBJ parsing, JPEG decoding and resampling for a YCB mesh; every worker of a
+    run loads every mesh). The cached mesh is the parsed one, so renders are identical. An unreadable cache
+    entry is replaced; a cache folder that cannot be written only costs the time.
 
     Raises:
         MeshError: missing or unreadable file, no faces, no texture/vertex colours, or a millimetre mesh
@@ -159,6 +174,89 @@ def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = No
     name = name or path.parent.name or path.stem
     if not path.is_file():
         raise MeshError(f"{path}: mesh file not found")
+    if cache_dir is None:
+        return _parse_mesh(path, conf, name, content_hash(path))
+    digest = content_hash(path)
+    entry = Path(cache_dir) / "meshes" / f"{_cache_key(digest, conf)[:32]}.pkl"  # the content's, whatever its name
+    cached = _read_cached(entry, digest)
+    if cached is not None:
+        if cached.scale != 1.0 and conf.units == "auto":  # as the first load warned
+            log.warning("%s: looks like millimetres (as when it was cached); scaling by %g", path, cached.scale)
+        return dataclasses.replace(cached, name=name, path=path)
+    model = _parse_mesh(path, conf, name, digest)
+    _write_cached(entry, model)
+    return model
+
+
+def _cache_key(digest: str, conf: MeshConfig) -> str:
+    """What a cached mesh depends on: the files, the settings that change the loaded mesh, the libraries."""
+    from PIL import __version__ as pil_version  # noqa: PLC0415
+
+    parts = (
+        MESH_CACHE_FORMAT,
+        digest,
+        conf.units,
+        conf.on_millimetres,
+        conf.mm_diagonal_threshold,
+        conf.max_texture_px,
+        trimesh.__version__,
+        pil_version,
+    )
+    return hashlib.sha256(repr(parts).encode()).hexdigest()
+
+
+_MAGIC = b"batchpose mesh\n"
+
+
+def _read_cached(entry: Path, digest: str) -> ObjectModel | None:
+    """The model in ``entry``, or None when there is none, it cannot be read (a cache folder that is not
+    one) or it is damaged (then it is removed). An entry is the magic line, the SHA-256 of the pickle and
+    the pickle: a damaged byte is found before anything is unpickled."""
+    try:
+        data = entry.read_bytes()
+    except OSError as e:
+        if not isinstance(e, FileNotFoundError):
+            log.debug("%s: cached mesh not readable (%s)", entry, e)
+        return None
+    head, body = data[: len(_MAGIC) + 32], data[len(_MAGIC) + 32 :]
+    model, why = None, "damaged cached mesh"
+    if head[: len(_MAGIC)] == _MAGIC and hashlib.sha256(body).digest() == head[len(_MAGIC) :]:
+        try:
+            model = pickle.loads(body)  # our own entry, checked above
+        except Exception as e:  # pickled by an incompatible version of a library
+            why = f"unreadable cached mesh ({type(e).__name__})"
+        else:
+            why = "cached mesh does not match its key"
+    if isinstance(model, ObjectModel) and model.content_hash == digest:
+        return model
+    log.warning("%s: %s; loading the mesh file again", entry, why)
+    try:
+        entry.unlink(missing_ok=True)
+    except OSError:
+        pass
+    return None
+
+
+def _write_cached(entry: Path, model: ObjectModel) -> None:
+    """Keep ``model`` in ``entry`` (atomically: a killed run leaves no partial entry)."""
+    body = pickle.dumps(model, protocol=pickle.HIGHEST_PROTOCOL)
+    try:
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=entry.parent, prefix=entry.name, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(_MAGIC + hashlib.sha256(body).digest())
+                f.write(body)
+            os.chmod(tmp, 0o644)  # as the template libraries beside it (mkstemp makes 0600)
+            os.replace(tmp, entry)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+    except OSError as e:
+        log.debug("%s: mesh not cached (%s)", entry, e)
+
+
+def _parse_mesh(path: Path, conf: MeshConfig, name: str, digest: str) -> ObjectModel:
+    """:func:`load_mesh` without the cache."""
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # trimesh raises many types for corrupt files
@@ -193,6 +291,6 @@ def load_mesh(path: Path, conf: MeshConfig = MeshConfig(), name: str | None = No
         path=path,
         mesh=loaded,
         diameter_m=diameter(loaded.vertices),
-        content_hash=content_hash(path),
+        content_hash=digest,
         scale=scale,
     )

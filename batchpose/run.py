@@ -264,7 +264,7 @@ def main(
         models, lib_dirs, obj_ids = {}, {}, {}
         t0 = time.perf_counter()
         for spec in man.objects:
-            models[spec.name] = load_mesh(spec.mesh, conf.mesh, name=spec.name)
+            models[spec.name] = load_mesh(spec.mesh, conf.mesh, name=spec.name, cache_dir=cache_dir)
             obj_ids[spec.name] = source.obj_id(spec.name)
         lib_dirs = build_templates.build_all(models, conf, K0, width, height, cache_dir, jobs=jobs)
         log.info("template libraries ready for %d objects in %.1f s", len(models), time.perf_counter() - t0)
@@ -303,6 +303,7 @@ def main(
                 # workers on this machine share its cores; a remote cluster's workers keep their defaults
                 threads=None if scheduler else estimate_poses.threads_per_worker(jobs),
                 frame_ids=set(frames_index["frame_id"]),
+                mesh_cache=cache_dir,
             )
         if max_pairs is not None and poses_path.name != "poses.parquet":
             return run_dir  # stopped early on purpose (resume tests)
