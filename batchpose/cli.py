@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("pipeline", help="pipeline YAML, e.g. pipelines/gnc_pose.yaml")
     r.add_argument("--manifest", required=True, help="data manifest YAML, e.g. data_manifest/demo.yaml")
     r.add_argument("--out", required=True, help="run directory for all outputs")
-    r.add_argument("--cache", help="template cache directory (default ~/.cache/batchpose)")
+    r.add_argument("--cache", help="cache of template libraries and loaded meshes (default ~/.cache/batchpose)")
     r.add_argument(
         "--set",
         action="append",

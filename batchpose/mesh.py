@@ -162,9 +162,11 @@ def load_mesh(
 
     With ``cache_dir``, the loaded mesh (texture already downscaled) is kept in ``cache_dir/meshes`` under
     a key of the files' content and the mesh settings, and later loads of the same files read it from there
-    (~20 ms instead of ~0.7 s of OBJ parsing, JPEG decoding and resampling for a YCB mesh; every worker of a
+    (~50 ms instead of ~0.7 s of OBJ parsing, JPEG decoding and resampling for a YCB mesh; every worker of a
     run loads every mesh). The cached mesh is the parsed one, so renders are identical. An unreadable cache
-    entry is replaced; a cache folder that cannot be written only costs the time.
+    entry is replaced; a cache folder that cannot be written only costs the time. Entries are Python
+    pickles (checksummed against damage, not against a deliberate forgery): like any pickle cache, the
+    folder must not be writable by people you would not let run code as you.
 
     Raises:
         MeshError: missing or unreadable file, no faces, no texture/vertex colours, or a millimetre mesh
