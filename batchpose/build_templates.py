@@ -119,6 +119,7 @@ def load(lib_dir: Path) -> TemplateLibrary:
                 desc=z["desc"],
                 pts3d=z["pts3d"],
                 shapes=z["shapes"],
+                folder=lib_dir,
             )
     except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
         raise DataError(f"{lib_dir}: template library is unreadable ({e}); delete it to build it again") from None

@@ -179,7 +179,8 @@ class PoseEstimator:
 
     def _library_index(self, name: str):
         if name not in self._lib_index:
-            self._lib_index[name] = flann_index(self.libraries[name].desc, self.conf.match)
+            lib = self.libraries[name]
+            self._lib_index[name] = flann_index(lib.desc, self.conf.match, keep_in=lib.folder)
         return self._lib_index[name]
 
     def _nearest_templates(self, name: str, desc_q: np.ndarray) -> tuple:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -35,6 +36,8 @@ class TemplateLibrary:
         pts3d: (N, 3) float32 model-frame 3D points, metres.
         shapes: (N, 2) float32 keypoint (size_px, angle_deg) in its template (see
             :func:`batchpose.features.detect_shapes`).
+        folder: the cache folder it was loaded from (None when built in memory); its descriptor index is
+            kept there too (:func:`batchpose.correspondences.flann_index`).
     """
 
     obj_name: str
@@ -48,6 +51,7 @@ class TemplateLibrary:
     desc: np.ndarray
     pts3d: np.ndarray
     shapes: np.ndarray
+    folder: Path | None = None
 
     @property
     def n_views(self) -> int:
