@@ -176,9 +176,9 @@ def load_mesh(
     name = name or path.parent.name or path.stem
     if not path.is_file():
         raise MeshError(f"{path}: mesh file not found")
-    if cache_dir is None:
-        return _parse_mesh(path, conf, name, content_hash(path))
     digest = content_hash(path)
+    if cache_dir is None:
+        return _parse_mesh(path, conf, name, digest)
     entry = Path(cache_dir) / "meshes" / f"{_cache_key(digest, conf)[:32]}.pkl"  # the content's, whatever its name
     cached = _read_cached(entry, digest)
     if cached is not None:
