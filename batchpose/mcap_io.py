@@ -1058,8 +1058,9 @@ def _unwritable(frame: Frame) -> str:
     return ""
 
 
-def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: list[str], strict: bool = True) -> None:
-    """Calibration, ground truth and image of one frame, all at ``frame.stamp_ns``.
+def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: list[str], strict: bool = True) -> bool:
+    """Calibration, ground truth and image of one frame, all at ``frame.stamp_ns``; False when the frame is
+    left out.
 
     With ``strict`` off (the poses export after a run, where such frames are already failed rows), a frame
     whose image cannot be used is left out and a depth image that cannot be read is left out of its frame,
@@ -1074,7 +1075,7 @@ def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: l
     problem = "" if strict else _unwritable(frame)
     if problem:
         log.warning("%s; the frame is left out of the MCAP (its status is written)", problem)
-        return
+        return False
     t = int(frame.stamp_ns)
     cam = frame.camera
     K = np.asarray(cam.K, dtype=np.float64).reshape(3, 3)
@@ -1155,6 +1156,7 @@ def _write_frame(out: _Out, frame: Frame, obj_ids: Callable[[str], int], kind: l
         )
         _timestamp(d.timestamp, t)
         out.proto(DEPTH_TOPIC, d, t)
+    return True
 
 
 def _tmp_path(out_path: Path) -> Path:
@@ -1482,6 +1484,7 @@ def write_poses_mcap(
         raise ConfigError(f"{out_path}: the output would overwrite the input log")
     rows = _rows(records)
     tmp = _tmp_path(out_path)
+    left_out = 0
     try:
         with open(tmp, "wb") as f:
             if input_mcap is not None:
@@ -1493,7 +1496,7 @@ def write_poses_mcap(
                 kind: list[str] = []
                 for frame in frames or ():
                     pw.scene(frame.stamp_ns)
-                    _write_frame(out, frame, lambda _name: 0, kind, strict=False)
+                    left_out += not _write_frame(out, frame, lambda _name: 0, kind, strict=False)
                     pw.image(frame.stamp_ns, frame.stamp_ns, CAMERA_FRAME_ID, frame.camera, frame.frame_id)
                 out.finish()
         os.replace(tmp, out_path)
@@ -1502,7 +1505,8 @@ def write_poses_mcap(
         raise
     if pw.unmatched():
         log.warning("%s: %d pose records match no image log time (stamp_ns)", out_path, pw.unmatched())
-    log.info("wrote %s (%d images, %d pose records)", out_path, pw.n_images, len(rows))
+    shown = f"{pw.n_images - left_out} images" + (f", {left_out} unreadable frame(s) left out" if left_out else "")
+    log.info("wrote %s (%s, %d pose records)", out_path, shown, len(rows))
     return out_path
 
 

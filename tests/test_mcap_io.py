@@ -892,7 +892,7 @@ def test_poses_export_leaves_out_unreadable_frames_and_depth(tmp_path, caplog):
     frames[2] = dataclasses.replace(frames[2], image_data=b"", camera=Camera(K1, 0, 0))  # a 0-byte colour PNG
     t = [f.stamp_ns for f in frames]
     out = tmp_path / "poses.mcap"
-    with caplog.at_level(logging.WARNING, logger="batchpose"):
+    with caplog.at_level(logging.INFO, logger="batchpose"):
         write_poses_mcap(out, _rows(t, np.random.default_rng(18), fail={2}), {"box": _box_glb()}, frames=iter(frames))
     msgs = _all_messages(out)
     assert [m[6] for m in msgs if m[0] == IMAGE_TOPIC] == t[:2]
@@ -901,6 +901,7 @@ def test_poses_export_leaves_out_unreadable_frames_and_depth(tmp_path, caplog):
     assert len([m for m in msgs if m[0] == "/batchpose/poses/box"]) == 2  # the RGB poses, with or without depth
     assert "f1 (depth): depth image is empty (0 bytes); the depth image is left out of the MCAP" in caplog.text
     assert "f2: image is empty (0 bytes); the frame is left out of the MCAP" in caplog.text
+    assert f"wrote {out} (2 images, 1 unreadable frame(s) left out, 3 pose records)" in caplog.text
     # `convert` (write_frames_mcap) still refuses it: a converted log must hold every frame whole.
     with pytest.raises(ImageError, match=r"f1 \(depth\): depth image is empty"):
         write_frames_mcap(iter(frames[:2]), tmp_path / "conv.mcap")
