@@ -406,6 +406,10 @@ class PoseEstimator:
         if (mirrored := self._planar_mirror(name, res, x_used, X_used, camera, timings)) is not None:
             res, rec.reason = mirrored
         rec.cam_from_model = res.cam_from_model
+        if conf.refine.polish and self._can_render(name):
+            t0 = time.perf_counter()
+            rec.cam_from_model = self._polish(name, gray, res.cam_from_model, camera)
+            timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
         rec.n_inliers = res.n_inliers
         rec.median_residual_px = res.median_residual_px
         rec.inliers_px = x_used[res.inliers]
@@ -630,6 +634,26 @@ class PoseEstimator:
         if res_f is None:
             return None
         return res_f, corr_f, xy_f, desc_f
+
+    def _polish(self, name: str, gray: np.ndarray, T: np.ndarray, camera: Camera) -> np.ndarray:
+        """``refine.polish``: align the pose ``T`` to the frame by the mesh rendered there, ``polish_rounds``
+        times: corners of the frame on the render's silhouette where the two look alike
+        (:func:`batchpose.track.seed`) are found again in the render by patch correlation and the pose is
+        solved on them (:func:`batchpose.track.anchor_to_render`). Returns the last pose found (``T`` when
+        the first round finds too few corners)."""
+        rf = self.conf.refine
+        tc = dataclasses.replace(self.conf.track, render_search_px=rf.polish_search_px, min_fraction=0.0)
+        for _ in range(rf.polish_rounds):
+            rgb, depth = self._render(name, T, camera)
+            rendered = to_gray(rgb)
+            xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc)
+            if len(xy) < tc.min_points:
+                break
+            moved = anchor_to_render(gray, rendered, Track(xy, X, T, len(xy), 1.0), camera.K, camera.dist, tc)
+            if moved is None:
+                break
+            T = moved.track.cam_from_model
+        return T
 
     def _flips(self, name: str) -> list[np.ndarray]:
         if name not in self._flip_cache:
