@@ -770,10 +770,10 @@ class PoseEstimator:
         return c.track.enabled and c.method == "gnc_pose" and c.match.roi == "none" and self.renderer is not None
 
     def _follows(self, frame: Frame) -> bool:
-        """True when ``frame`` is the next image (``im_id`` + 1) of the previous frame's scene and camera,
-        a short step later in time (folder data sets' stamps are synthetic, their ``im_id`` is not)."""
+        """True when ``frame`` is the next image (``im_id`` + ``im_step``) of the previous frame's scene and
+        camera, a short step later in time (folder data sets' stamps are synthetic, their ``im_id`` is not)."""
         p, cam = self._prev, frame.camera
-        if p is None or p["scene_id"] != frame.scene_id or frame.im_id != p["im_id"] + 1:
+        if p is None or p["scene_id"] != frame.scene_id or frame.im_id != p["im_id"] + frame.im_step:
             return False
         if p["gray"].shape != (cam.height, cam.width):
             return False
@@ -1101,7 +1101,7 @@ class PoseEstimator:
 
     def _previous_pose(self, store: dict, name: str, frame: Frame) -> np.ndarray | None:
         """A search's pose of ``name`` in the previous frame (``store``: name -> (key, pose)), when tracking is
-        on and ``frame`` is the next one of its sequence (same scene and camera, ``im_id`` + 1, within
+        on and ``frame`` is the next one of its sequence (same scene and camera, ``im_id`` + ``im_step``, within
         ``track.max_gap_s``)."""
         if name not in store or not self.tracking():
             return None
@@ -1109,7 +1109,7 @@ class PoseEstimator:
         gap_s = (frame.stamp_ns - stamp_ns) * 1e-9
         follows = (
             scene_id == frame.scene_id
-            and frame.im_id == im_id + 1
+            and frame.im_id == im_id + frame.im_step
             and np.array_equal(K, frame.camera.K)
             and 0 < gap_s <= self.conf.track.max_gap_s
         )

@@ -97,6 +97,8 @@ class Frame:
         depth_data: the depth image's encoded or raw bytes.
         depth_scale_m: metres per depth unit (YCB-Video: 1e-4; float depth in metres: 1.0).
         depth_step: bytes per row of a raw depth image (0: packed, or compressed).
+        im_step: how far this run's previous frame of the sequence is in ``im_id`` (a manifest's
+            ``frames.every``: every ``im_step``-th frame is used); tracking follows a pose from that frame.
         error: why the frame cannot be used although the data set lists it (a corrupt ``-meta.mat``, an
             undecodable image message, a raw image of another size than its calibration); None when it
             can. :func:`decode_image` raises it, so the frame fails with it (``bad_image`` for an
@@ -117,6 +119,7 @@ class Frame:
     depth_data: bytes = b""
     depth_scale_m: float = 0.0
     depth_step: int = 0
+    im_step: int = 1
     error: BatchposeError | None = None
 
     @property

@@ -8,7 +8,8 @@ Example::
     objects: [003_cracker_box, 004_sugar_box]
     targets: annotations   # or: all
 
-Relative paths are resolved against the manifest file's folder.
+Relative paths are resolved against the manifest file's folder. ``frames:`` may also choose which frames a
+run uses, with ``every``, ``frame_ids`` and (logs) ``from_s`` / ``to_s``: :class:`batchpose.datasets.Selection`.
 """
 
 from __future__ import annotations

@@ -452,6 +452,9 @@ class McapFrameSource(FrameSource):
         self.truncated = False
         self._lost_bytes = 0
         self._n_messages = 0
+        #: log time of the log's first message of any topic (where Foxglove's timeline starts); None when
+        #: the file says nothing (no statistics record).
+        self.start_ns: int | None = None
         if tail == MCAP_MAGIC and self._size > 16 and self._read_summary():
             self.indexed = True
         else:
@@ -503,6 +506,8 @@ class McapFrameSource(FrameSource):
                 if summary.statistics is not None:
                     self._counts = dict(summary.statistics.channel_message_counts)
                     self._n_messages = summary.statistics.message_count
+                    if self._n_messages:
+                        self.start_ns = int(summary.statistics.message_start_time)
                 for m in reader.iter_metadata():
                     self._metadata[m.name] = dict(m.metadata)
         except _READ_ERRORS as e:
@@ -520,6 +525,8 @@ class McapFrameSource(FrameSource):
                 for rec in StreamReader(f, validate_crcs=True).records:
                     if isinstance(rec, Message):
                         counts[rec.channel_id] += 1
+                        if self.start_ns is None or rec.log_time < self.start_ns:
+                            self.start_ns = int(rec.log_time)
                         ch = self._channels.get(rec.channel_id)
                         if ch is not None and ch.topic == GT_TOPIC:
                             self._collect_obj_ids(rec.data)

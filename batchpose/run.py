@@ -92,6 +92,20 @@ def _clear_results(run_dir: Path) -> None:
         (run_dir / name).unlink(missing_ok=True)
 
 
+def _comparable(resolved: dict) -> dict:
+    """A run's saved config without what may change between runs in one directory: the mesh hashes (checked
+    on their own) and which of the data set's frames it uses (``frames:`` keys :data:`SELECT_KEYS`, like
+    ``--limit``: ingest indexes the frames anew and the pairs already estimated are kept)."""
+    from batchpose.datasets import SELECT_KEYS  # noqa: PLC0415
+
+    out = {**resolved, "meshes": None}
+    manifest = out.get("manifest")
+    if isinstance(manifest, dict) and isinstance(manifest.get("frames"), dict):
+        frames = {k: v for k, v in manifest["frames"].items() if k not in SELECT_KEYS}
+        out["manifest"] = {**manifest, "frames": frames}
+    return out
+
+
 def _previous_run(run_dir: Path) -> dict | None:
     """The config of the run in the directory ``run_dir`` (None when there is none yet); ConfigError when it
     has other files in it than a run's."""
@@ -192,7 +206,7 @@ def main(
     report: bool = True,
 ) -> Path:
     """Run the whole pipeline; returns ``run_dir``."""
-    from batchpose.datasets import open_frames
+    from batchpose.datasets import SelectedFrames, open_frames
 
     t_start = time.perf_counter()
     if jobs < 1:
@@ -231,7 +245,7 @@ def main(
         previous = _previous_run(run_dir)
         if previous is not None and not overwrite:
             plain = json.loads(json.dumps(resolved))
-            if {**previous, "meshes": None} != {**plain, "meshes": None}:
+            if _comparable(previous) != _comparable(plain):
                 raise ConfigError(
                     f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
                 )
@@ -257,6 +271,12 @@ def main(
 
         frames_index = pd.read_parquet(run_dir / "frames.parquet")
         if frames_index.empty:
+            if isinstance(source, SelectedFrames):
+                sel = source.selection
+                chosen = sel.describe()
+                if source.span_s is not None and (sel.from_s is not None or sel.to_s is not None):
+                    chosen += f"; its images span {source.span_s[0]:.3g}-{source.span_s[1]:.4g} s of the log"
+                raise ConfigError(f"{man.path}: none of the data set's frames is chosen ({chosen})")
             raise ConfigError(f"{man.path}: the data set has no frames")
         if man.targets == "annotations":
             _check_annotated(pd.read_parquet(run_dir / "gt.parquet"), objects, man.path, limit)

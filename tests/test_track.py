@@ -157,6 +157,18 @@ def test_when_a_track_starts_and_ends(cracker_model, cracker_library, clip, chan
     assert all(r.ok for r in recs)
 
 
+def test_tracking_follows_every_other_frame_of_a_selection(cracker_model, cracker_library, clip):
+    """A manifest's ``frames.every: 2`` keeps im_ids 0, 2, 4, 6 with ``im_step`` 2: tracked from one kept
+    frame to the next. Without the step the same frames are a gap each time: every one estimated afresh."""
+    est = make_estimator(cracker_model, cracker_library)
+    frames = [frame_of(img, i) for i, (img, _) in enumerate(clip[:8])][::2]
+    stepped = run_clip(est, [dataclasses.replace(f, im_step=2) for f in frames], cracker_model.name)
+    assert [r.tracked for r in stepped] == [False, True, True, True]
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    assert all(add_error(r.cam_from_model, clip[2 * i][1], pts) < 0.005 for i, r in enumerate(stepped))
+    assert [r.tracked for r in run_clip(est, frames, cracker_model.name)] == [False] * 4
+
+
 def test_tracking_with_lens_distortion(cracker_model, cracker_library, clip):
     """The clip seen through a lens with barrel distortion (k1 = -0.25): seeding looks the depth up at the
     undistorted position and flow works in the distorted image; tracked poses stay within 1 % of the
