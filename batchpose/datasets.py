@@ -673,8 +673,8 @@ class SelectedFrames(FrameSource):
 
     Kept frames get ``im_step`` = ``selection.every``, so tracking follows an object from one kept frame to
     the next (within ``track.max_gap_s``). Reading never decodes an image: the frames left out are
-    skipped, not decoded. Iterating raises :class:`DataError` at the end when a listed frame id is not in
-    the source.
+    skipped, not decoded, and a log read in time order (an indexed MCAP) is not read past ``to_s``.
+    Iterating raises :class:`DataError` at the end when a listed frame id is not in the source.
     """
 
     def __init__(self, source: FrameSource, selection: Selection) -> None:
@@ -690,6 +690,7 @@ class SelectedFrames(FrameSource):
         seen: set[str] = set()
         timed = sel.from_s is not None or sel.to_s is not None
         start_ns = getattr(self.source, "start_ns", None)
+        ordered = getattr(self.source, "time_ordered", False)
         k, first_ns, last_ns = 0, None, None
         for f in self.source:
             start_ns = f.stamp_ns if start_ns is None else start_ns  # no record of the log's start: its first image
@@ -701,7 +702,11 @@ class SelectedFrames(FrameSource):
                 seen.add(f.frame_id)
             if timed:
                 t = (f.stamp_ns - start_ns) * 1e-9
-                if (sel.from_s is not None and t < sel.from_s) or (sel.to_s is not None and t >= sel.to_s):
+                if sel.to_s is not None and t >= sel.to_s:
+                    if ordered:  # nothing later can be in the window: the rest of the log is not read
+                        break
+                    continue
+                if sel.from_s is not None and t < sel.from_s:
                     continue
             k += 1
             if (k - 1) % sel.every == 0:
@@ -710,8 +715,10 @@ class SelectedFrames(FrameSource):
             self.span_s = ((first_ns - start_ns) * 1e-9, (last_ns - start_ns) * 1e-9)
         missing = [i for i in sel.frame_ids if i not in seen]
         if missing:
+            where = " between frames.from_s and frames.to_s" if timed else ""
             raise DataError(
-                f"frames.frame_ids: {len(missing)} listed frame(s) not in {self.source.describe()}, e.g. {missing[0]!r}"
+                f"frames.frame_ids: {len(missing)} listed frame(s) not in {self.source.describe()}{where}, "
+                f"e.g. {missing[0]!r}"
             )
 
     def count(self) -> int:

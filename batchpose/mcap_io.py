@@ -730,6 +730,11 @@ class McapFrameSource(FrameSource):
                 raise DataError(f"{self.path}: corrupt MCAP data ({type(e).__name__}: {one_line(e)})") from None
 
     @property
+    def time_ordered(self) -> bool:
+        """True when frames come in log-time order (an indexed file; a stream-read one is in file order)."""
+        return self.indexed
+
+    @property
     def channels(self) -> dict[int, Channel]:
         """Channel id -> channel record."""
         return dict(self._channels)

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from batchpose.datasets import SelectedFrames, open_frames
+from batchpose.datasets import FrameSource, SelectedFrames, Selection, open_frames
 from batchpose.errors import ConfigError, DataError
 from batchpose.mcap_io import McapFrameSource
 from tests.test_datasets import make_ycbv
@@ -75,6 +75,25 @@ def test_a_time_window_counts_from_the_logs_first_message(tmp_path, summary):
     both = open_frames({"format": "mcap", "path": "log.mcap", "from_s": 1.04, "every": 2}, tmp_path)
     assert [f.stamp_ns for f in both] == [times[1], times[3], times[5]]
     assert "every 2nd frame, from 1.04 s" in both.describe()
+    # An indexed log comes in time order: reading stops at the first image past the window.
+    inner, pulled = McapFrameSource(path), []
+
+    class Counting(FrameSource):
+        start_ns, time_ordered = inner.start_ns, inner.time_ordered
+
+        def __iter__(self):
+            for f in inner:
+                pulled.append(f.stamp_ns)
+                yield f
+
+        def count(self):
+            return inner.count()
+
+        def describe(self):
+            return "counting"
+
+    assert [f.stamp_ns for f in SelectedFrames(Counting(), Selection(to_s=1.12))] == times[:3]
+    assert pulled == (times[:4] if summary else times)
 
 
 @pytest.mark.parametrize(
