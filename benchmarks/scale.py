@@ -10,8 +10,8 @@ the pipeline slowed down, not that the content got harder.
 
 Reported: generation time, stage wall times, throughput per quarter of the run (from shard completion
 times, after every worker's first shard; flat is the goal) and per-pair compute time per quarter (from
-poses.parquet), RSS of every worker per quarter (must not grow), accuracy (ADD < 0.1 d) and PASS/MISS per
-target.
+poses.parquet), RSS of every worker per quarter (peak and median; the median must not grow), accuracy
+(ADD < 0.1 d) and PASS/MISS per target.
 
 Usage:
     .venv/bin/python benchmarks/scale.py [--frames 2000] [--jobs 2] [--keep DIR] [--cache DIR]
@@ -45,7 +45,7 @@ MODELS = REPO / "demo_data" / "models"
 FRAME_PERIOD_NS = 33_333_333
 RSS_LIMIT = 1.5 * 1024**3
 FLAT_MIN = 0.9  # last-quarter throughput / first-quarter throughput
-GROWTH_MAX = 0.05  # last-quarter peak RSS / first-quarter peak RSS - 1
+GROWTH_MAX = 0.05  # last-quarter median RSS / first-quarter median RSS - 1, the steepest worker
 
 
 # ---------------------------------------------------------------------------------------------- generate
@@ -288,7 +288,7 @@ def main() -> int:
 
     # throughput and compute time per quarter; memory per quarter
     bounds = [n * q / 4 for q in range(5)]
-    rows, rss_q = [], []
+    rows, rss_q, med_q = [], [], []
     # Quarter 1 starts when every worker has finished its first shard: each first shard carries that
     # worker's start-up, and they finish together, so counting the later ones would inflate quarter 1.
     first = min(args.jobs, len(shards)) - 1
@@ -304,6 +304,11 @@ def main() -> int:
         t_to = (est_start - rss.t0_epoch) + end["t_s"]
         workers = rss.peak_by_pid("worker", t_from, t_to)
         rss_q.append((max(workers.values(), default=0), rss.peak("main", t_from, t_to), workers))
+        by_pid: dict[int, list[int]] = {}
+        for t, pid, r, role in rss.samples:
+            if role == "worker" and t_from <= t < t_to:
+                by_pid.setdefault(pid, []).append(r)
+        med_q.append({pid: float(np.median(v)) for pid, v in by_pid.items()})
         ok = sel["status"] == "ok"
         rows.append(
             [
@@ -353,6 +358,10 @@ def main() -> int:
         + "; ".join(f"pid {p}: " + " / ".join(f"{w.get(p, 0) / MB:.0f}" for _, _, w in rss_q) for p in pids)
     )
 
+    print(
+        "worker RSS median by quarter (MB): "
+        + "; ".join(f"pid {p}: " + " / ".join(f"{m.get(p, 0) / MB:.0f}" for m in med_q) for p in pids)
+    )
     print(f"worker RSS trend after Q1: {per_1000:+.0f} MB per 1000 frames (steepest worker, least squares)")
     print(f"other processes kept {rss.other_load():.2f} cores busy during the run (comparable only when ~0)")
     print(
@@ -364,7 +373,11 @@ def main() -> int:
 
     fps_q = [float(r[3]) for r in rows]
     peak_worker = max(r[0] for r in rss_q)
-    growth = rss_q[-1][0] / rss_q[0][0] - 1 if rss_q[0][0] else float("nan")
+    # Growth from the quarters' median RSS, worker by worker: a full estimate's buffers lift a worker's RSS by
+    # ~50 MB for a moment, so whether a quarter's *peak* holds one is chance (+0.3 % and +11.7 % Q4 vs Q1 in
+    # two runs of the same code); a leak lifts the median.
+    growth = max((med_q[-1].get(p, 0) / med_q[0][p] - 1 for p in med_q[0] if med_q[0][p]), default=float("nan"))
+    peak_growth = rss_q[-1][0] / rss_q[0][0] - 1 if rss_q[0][0] else float("nan")
     print("\n## Targets")
     print(
         target(
@@ -377,8 +390,8 @@ def main() -> int:
     print(
         target(
             growth <= GROWTH_MAX,
-            f"no memory growth: worker peak last quarter vs first {100 * growth:+.1f} % "
-            f"(target <= +{100 * GROWTH_MAX:.0f} %)",
+            f"no memory growth: worker median RSS last quarter vs first {100 * growth:+.1f} % "
+            f"(target <= +{100 * GROWTH_MAX:.0f} %; peaks {100 * peak_growth:+.1f} %)",
         )
     )
     if args.frames != 2000:
