@@ -563,6 +563,131 @@ def _confidence_hist_figure(poses: pd.DataFrame) -> str:
     return _fig_png(fig)
 
 
+#: What the timeline shows for a (frame, object) pair, most severe first, with its colour; a column that
+#: holds several frames shows the most severe of them.
+TIMELINE_KINDS: tuple[tuple[str, str], ...] = (
+    ("ok but wrong (ADD-S > 0.1 d)", "#7b2d8e"),
+    ("failed", "#c44e52"),
+    ("low confidence", "#dd8452"),
+    ("hidden", "#b0b0b0"),
+    ("ok, full estimate", "#2f7d32"),
+    ("ok, tracked", "#95d195"),
+)
+#: Most columns a timeline row has: a longer run puts several frames in a column.
+TIMELINE_COLUMNS = 1200
+
+
+def timeline_kinds(rows: pd.DataFrame, wrong: np.ndarray | None = None) -> np.ndarray:
+    """Index into :data:`TIMELINE_KINDS` of each (frame, object) row (``status``, optional ``tracked``);
+    ``wrong``: per row, True for an ok pose the ground truth rejects (ADD-S > 0.1 d)."""
+    status = rows["status"].astype(str).to_numpy()
+    tracked = rows["tracked"].eq(True).to_numpy() if "tracked" in rows.columns else np.zeros(len(rows), bool)
+    ok = status == "ok"
+    kind = np.full(len(rows), 1)  # failed: every status not named below
+    kind[status == "low_confidence"] = 2
+    kind[status == "hidden"] = 3
+    kind[ok & ~tracked] = 4
+    kind[ok & tracked] = 5
+    if wrong is not None:
+        kind[ok & wrong] = 0
+    return kind
+
+
+def timeline_grid(t_s: np.ndarray, obj: np.ndarray, kind: np.ndarray, objects: list[str], columns: int) -> np.ndarray:
+    """(len(objects), columns) kind index of each column (-1: no row there): the time span cut into
+    ``columns`` equal parts, each showing its most severe kind."""
+    grid = np.full((len(objects), columns), len(TIMELINE_KINDS))
+    span = float(t_s.max() - t_s.min()) if len(t_s) else 0.0
+    col = np.zeros(len(t_s), int)
+    if span > 0:
+        col = np.minimum(((t_s - t_s.min()) / span * columns).astype(int), columns - 1)
+    row = np.array([objects.index(o) for o in obj], int)
+    np.minimum.at(grid, (row, col), kind)
+    grid[grid == len(TIMELINE_KINDS)] = -1
+    return grid
+
+
+def _timeline_figure(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> str | None:
+    """Status of each object over the run's time (and ADD-S, or confidence without ground truth); None for
+    a run of one frame time."""
+    if "stamp_ns" not in poses.columns or poses["stamp_ns"].isna().any():
+        return None
+    stamps = poses["stamp_ns"].astype("int64")
+    if stamps.nunique() < 2:
+        return None
+    objects = sorted(set(poses["obj_name"]))
+    t_s = ((stamps - stamps.min()) * 1e-9).to_numpy()
+    wrong = None
+    if per_instance is not None:
+        key = per_instance.set_index(["frame_id", "obj_name"])
+        idx = pd.MultiIndex.from_frame(poses[["frame_id", "obj_name"]])
+        adds = key["adds_m"].reindex(idx).to_numpy(float)
+        diam = key["diameter_m"].reindex(idx).to_numpy(float)
+        wrong = adds > 0.1 * diam
+    kind = timeline_kinds(poses, wrong)
+    columns = min(TIMELINE_COLUMNS, int(stamps.nunique()))
+    grid = timeline_grid(t_s, poses["obj_name"].to_numpy(), kind, objects, columns)
+    from matplotlib.colors import to_rgb
+    from matplotlib.patches import Patch
+
+    rgb = np.ones((*grid.shape, 3))  # white: no row there
+    for k, (_, c) in enumerate(TIMELINE_KINDS):
+        rgb[grid == k] = to_rgb(c)
+    fig = _new_figure(10.0, 1.6 + 0.32 * len(objects) + 2.6)
+    ax, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [0.5 + 0.32 * len(objects), 2.6]})
+    ax.imshow(rgb, aspect="auto", interpolation="nearest", extent=(0, t_s.max(), len(objects) - 0.5, -0.5))
+    ax.set_yticks(range(len(objects)), objects, fontsize=8)
+    title = "Status over time"
+    if columns < stamps.nunique():
+        title += f" (about {stamps.nunique() / columns:.0f} frames a column: the most severe shown)"
+    ax.set_title(title, fontsize=10)
+    shown = sorted(set(kind.tolist()))
+    ax.legend(
+        handles=[Patch(color=TIMELINE_KINDS[k][1], label=TIMELINE_KINDS[k][0]) for k in shown],
+        loc="upper left",
+        bbox_to_anchor=(1.0, 1.0),
+        frameon=False,
+        fontsize=8,
+    )
+    colors = _colors(len(objects))
+    ok = (poses["status"] == "ok").to_numpy()
+    for name, c in zip(objects, colors, strict=True):
+        sel = ok & (poses["obj_name"] == name).to_numpy()
+        if per_instance is not None:
+            ax2.scatter(t_s[sel], np.maximum(adds[sel] * 1000.0, 1e-2), s=6, color=c, label=name)
+            d = diam[(poses["obj_name"] == name).to_numpy()]
+            if np.isfinite(d).any():  # the 0.1 d line above which an ok pose counts as wrong
+                ax2.axhline(100.0 * np.nanmax(d), color=c, ls="--", lw=0.8)
+        else:
+            ax2.scatter(t_s[sel], poses["confidence"].to_numpy(float)[sel], s=6, color=c, label=name)
+    if per_instance is not None:
+        ax2.set_yscale("log")
+        ax2.set_ylabel("ADD-S of ok poses (mm; dashed: 0.1 d)")
+    else:
+        ax2.set_ylim(0, 1.02)
+        ax2.set_ylabel("confidence of ok poses")
+    ax2.set_xlabel("seconds since the run's first frame")
+    ax2.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False, fontsize=8, markerscale=2)
+    fig.tight_layout()
+    return _fig_png(fig)
+
+
+def _timeline_section(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> list[str]:
+    png = _timeline_figure(poses, per_instance)
+    if png is None:
+        return []
+    what = "ADD-S of the ok poses" if per_instance is not None else "confidence of the ok poses"
+    return [
+        '<section id="timeline"><h2>Over time</h2>',
+        (
+            '<p class="note">Each object\'s status frame by frame (white: not estimated there), and the '
+            f"{what}: where in the log an object was lost, tracked or wrong.</p>"
+        ),
+        _img("plot-timeline", f"Status of each object over time, and the {what}", png),
+        "</section>",
+    ]
+
+
 # ---------------------------------------------------------------------------------------------- gallery
 
 _BOX_EDGES = ((0, 1), (1, 3), (3, 2), (2, 0), (4, 5), (5, 7), (7, 6), (6, 4), (0, 4), (1, 5), (2, 6), (3, 7))
@@ -1026,6 +1151,7 @@ def main(run_dir: Path, overwrite: bool = False) -> Path:
                 f'<p class="note">† GNC-Pose\'s numbers {_esc(PAPER_NOTE)}. Paper means, ADD-S AUC / ADD AUC: '
                 f"{_esc(means)}.</p></section>"
             ),
+            *_timeline_section(run.poses, per_instance),
             '<section id="curves"><h2>Accuracy–threshold curves</h2><div class="plots">',
             _img(
                 "plot-curve-adds",
@@ -1106,6 +1232,7 @@ def main(run_dir: Path, overwrite: bool = False) -> Path:
                 digits=2,
             ),
             "</section>",
+            *_timeline_section(run.poses, None),
             '<section id="confidence"><h2>Confidence</h2>',
             _img(
                 "plot-confidence",

@@ -540,3 +540,38 @@ def test_report_in_browser(report, chromium, tmp_path):
     assert (img.mean(axis=2) < 200).mean() > 0.02
     if os.environ.get("BATCHPOSE_KEEP_SCREENSHOT"):
         shutil.copy(shot, os.environ["BATCHPOSE_KEEP_SCREENSHOT"])
+
+
+def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
+    rows = pd.DataFrame(
+        {
+            "status": ["ok", "ok", "ok", "low_confidence", "hidden", "pnp_failed", "ok"],
+            "tracked": [False, True, None, False, False, False, False],
+        }
+    )
+    wrong = np.array([False, False, False, False, False, False, True])
+    kinds = make_report.timeline_kinds(rows, wrong)
+    names = [make_report.TIMELINE_KINDS[k][0] for k in kinds]
+    assert names == [
+        "ok, full estimate",
+        "ok, tracked",
+        "ok, full estimate",
+        "low confidence",
+        "hidden",
+        "failed",
+        "ok but wrong (ADD-S > 0.1 d)",
+    ]
+    # Two objects over 0..3 s in 2 columns: a column shows its most severe pair, white (-1) where none.
+    t = np.array([0.0, 1.0, 2.0, 3.0, 0.0])
+    obj = np.array(["a", "a", "a", "a", "b"])
+    kind = np.array([5, 1, 4, 5, 3])
+    grid = make_report.timeline_grid(t, obj, kind, ["a", "b"], columns=2)
+    np.testing.assert_array_equal(grid, [[1, 4], [3, -1]])
+
+
+def test_timeline_section_in_both_reports(report, tmp_path):
+    assert "plot-timeline" in _imgs((report / "index.html").read_text())
+    out = make_report.main(make_run(tmp_path, with_gt=False))
+    html = (out / "index.html").read_text()
+    assert 'id="timeline"' in html and "confidence of the ok poses" in html
+    assert _decodes(_imgs(html)["plot-timeline"]).shape[1] >= 900
