@@ -291,6 +291,18 @@ class TrackConfig:
     ``chunk_frames`` be 64."""
     reseed_fraction: float = 0.75
     """See ``refresh_every``."""
+    refresh_turn_deg: float = 20.0
+    """Refresh also when the camera has moved this far around the object since the keyframe (the angle
+    between the two directions from the object to the camera; 0: never for that reason): the points
+    seeded on the sides it showed then do not cover the sides it shows now."""
+    min_match: float = 0.35
+    """A track starts, and survives a refresh, only where the mesh rendered at its pose looks like the
+    frame over its whole silhouette (texture match, as ``verify_min_match``, over the pixels no object
+    found in front hides); else the object is estimated afresh in the next frame, or at once at a
+    refresh (0: no check). A wrong but confident full estimate would otherwise be followed for dozens of
+    frames; and a track's points all lie on what was visible at its keyframe: when the object turns that
+    part edge-on they can stay aligned while the pose turns the wrong way, which the pull onto the mesh,
+    looking only near each point, cannot see."""
     render_search_px: int = 3
     """How far from its tracked position a point's rendered patch is looked for."""
     fb_max_px: float = 1.0
@@ -638,6 +650,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("render_every", tc.render_every >= 0, "be >= 0"),
         ("refresh_every", tc.refresh_every >= 0, "be >= 0"),
         ("reseed_fraction", 0 <= tc.reseed_fraction <= 1, "be in [0, 1]"),
+        ("min_match", 0 <= tc.min_match < 1, "be in [0, 1)"),
+        ("refresh_turn_deg", 0 <= tc.refresh_turn_deg <= 180, "be in [0, 180]"),
         ("render_search_px", tc.render_search_px >= 1, "be >= 1"),
         ("levels", tc.levels >= 0, "be >= 0"),
         ("chunk_frames", tc.chunk_frames >= 1, "be >= 1"),

@@ -37,7 +37,7 @@ from batchpose.poses import PoseRecord
 from batchpose.refine import refine_pose
 from batchpose.search import Silhouettes, distinct_matches, search, texture_match
 from batchpose.templates import TemplateLibrary
-from batchpose.track import Track, anchor_to_render, covered, follow_all, occluders, seed
+from batchpose.track import Track, anchor_to_render, covered, follow_all, occluders, seed, view_turn_deg
 from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
@@ -799,25 +799,44 @@ class PoseEstimator:
     def _render_gray(self, name: str, T: np.ndarray, camera: Camera) -> np.ndarray:
         return to_gray(self._render(name, T, camera)[0])
 
-    def _seed(self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera, hidden=()) -> Track | None:
-        """A new track from a confident full estimate (None when the object shows too few corners); no
-        corners where ``hidden`` (:meth:`_hidden`) puts something in front of it."""
+    def _seed(
+        self, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera, hidden=(), lab: np.ndarray | None = None
+    ) -> Track | None:
+        """A new track from a confident full estimate (None when the object shows too few corners, or, given
+        the frame's Lab image ``lab``, when the mesh at that pose does not look like the frame:
+        :meth:`_looks_alike`); no corners where ``hidden`` (:meth:`_hidden`) puts something in front of it."""
         model = self.models.get(name)
         if model is None:
             return None
         T = rec.cam_from_model
         rgb, depth = self._render(name, T, camera)
+        if lab is not None and not self._looks_alike(lab, rgb, depth, hidden):
+            return None
         xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, self.conf.track, hidden)
         if len(xy) < self.conf.track.min_points:
             return None
-        return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy())
+        return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy(), key_pose=T.copy())
 
-    def _refresh(self, name: str, gray: np.ndarray, res, camera: Camera, hidden=()):
-        """A new keyframe at the tracked pose, checked against the mesh: pull the points onto the mesh
-        rendered there (:func:`batchpose.track.anchor_to_render`), then seed corners afresh at the pulled pose.
-        None when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
-        rendered = self._render_gray(name, res.track.cam_from_model, camera)
-        anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, self.conf.track)
+    def _looks_alike(self, lab: np.ndarray, rgb: np.ndarray, depth: np.ndarray, hidden=()) -> bool:
+        """``track.min_match``: the mesh rendered at a pose (``rgb``, ``depth``) looks like the frame (``lab``)
+        over its silhouette, less what ``hidden`` puts in front of it; True when too little of it shows to
+        judge."""
+        if self.conf.track.min_match <= 0:
+            return True
+        seen = depth > 0
+        for occ in hidden:
+            seen &= ~(occ.mask & (depth > occ.near_m))
+        return seen.sum() < VERIFY_MIN_PX or texture_match(lab[seen], rgb[seen]) >= self.conf.track.min_match
+
+    def _refresh(self, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), lab: np.ndarray | None = None):
+        """A new keyframe at the tracked pose, checked against the mesh: the mesh rendered there must look like
+        the frame (:meth:`_looks_alike`, given the frame's Lab image ``lab``), then the points are pulled onto
+        it (:func:`batchpose.track.anchor_to_render`) and corners are seeded afresh at the pulled pose. None
+        when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
+        rgb, depth = self._render(name, res.track.cam_from_model, camera)
+        if lab is not None and not self._looks_alike(lab, rgb, depth, hidden):
+            return None
+        anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, self.conf.track)
         if anchored is None:
             return None
         rec = PoseRecord("", name, "ok", cam_from_model=anchored.track.cam_from_model, confidence=res.track.confidence)
@@ -850,6 +869,7 @@ class PoseEstimator:
             follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc, hidden) if due else []
         )
         followed = dict(zip(due, moved_all, strict=True))
+        lab = None  # the frame in Lab, made for the first refresh
         t_flow = (time.perf_counter() - t0) / max(len(due), 1)  # one flow call for all: each pays its share
         for k, name in enumerate(due):
             tr = tracks[name]
@@ -864,9 +884,14 @@ class PoseEstimator:
                 anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc)
                 res = anchored if anchored is not None else res
             old_age, thinning = res.track.age, len(res.track.xy) < tc.reseed_fraction * res.track.n_seeded
-            if tc.refresh_every and (old_age >= tc.refresh_every or thinning):
+            key = res.track.key_pose
+            turned = tc.refresh_turn_deg > 0 and key is not None
+            turned = turned and view_turn_deg(key, res.track.cam_from_model) > tc.refresh_turn_deg
+            if tc.refresh_every and (old_age >= tc.refresh_every or thinning or turned):
                 t1 = time.perf_counter()
-                res = self._refresh(name, gray, res, camera, hidden[k] if hidden else ())
+                if lab is None:
+                    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+                res = self._refresh(name, gray, res, camera, hidden[k] if hidden else (), lab)
                 t_refresh = time.perf_counter() - t1
                 if res is None:
                     log.debug("%s: track of %s no longer matches the mesh, estimating afresh", frame.frame_id, name)
@@ -923,7 +948,9 @@ class PoseEstimator:
             for rec in seeds:
                 t0 = time.perf_counter() - t_hidden
                 in_front = hidden_now[placed.index(rec.obj_name)] if hidden_now else ()
-                tr = self._seed(rec.obj_name, gray, rec, camera, in_front)
+                if lab is None:
+                    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+                tr = self._seed(rec.obj_name, gray, rec, camera, in_front, lab)
                 rec.timings["seed"] = time.perf_counter() - t0
                 if tr is not None:
                     self._tracks[rec.obj_name] = tr

@@ -38,6 +38,7 @@ class Track:
         confidence: the keyframe estimate's confidence (a tracked pose never claims more).
         age: frames tracked since the keyframe.
         key_gray: the keyframe image; key_xy: (N, 2) the surviving points' positions in it.
+        key_pose: (4, 4) the pose at the keyframe (None: unknown).
     """
 
     xy: np.ndarray
@@ -48,6 +49,7 @@ class Track:
     age: int = 0
     key_gray: np.ndarray | None = None
     key_xy: np.ndarray | None = None
+    key_pose: np.ndarray | None = None
 
 
 @dataclass
@@ -360,6 +362,7 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seed
         track.age + 1,
         track.key_gray,
         key_xy[keep] if key_xy is not None else None,
+        track.key_pose,
     )
     return TrackResult(moved, int(keep.sum()), med)
 
@@ -416,5 +419,15 @@ def anchor_to_render(
         track.age,
         track.key_gray,
         track.key_xy,
+        track.key_pose,
     )
     return TrackResult(moved, int(keep.sum()), med)
+
+
+def view_turn_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """How far the camera has moved around the object between poses ``a`` and ``b`` (cam_from_model): the
+    angle between the directions from the object's origin to the camera, in the model frame. A roll about
+    the line of sight does not count: it shows the same sides."""
+    va, vb = (-T[:3, :3].T @ T[:3, 3] for T in (a, b))
+    cos = float(va @ vb) / (float(np.linalg.norm(va) * np.linalg.norm(vb)) + 1e-12)
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))

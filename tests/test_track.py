@@ -13,7 +13,9 @@ from batchpose.config import EstimatorConfig, TrackConfig, load_estimator_config
 from batchpose.errors import ConfigError
 from batchpose.estimate import PoseEstimator
 from batchpose.frames import Camera, Frame
+from batchpose.poses import PoseRecord
 from batchpose.render import get_renderer
+from batchpose.track import TrackResult, view_turn_deg
 from batchpose.views import look_at
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import add_error, textured_background
@@ -167,6 +169,54 @@ def test_tracking_follows_every_other_frame_of_a_selection(cracker_model, cracke
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     assert all(add_error(r.cam_from_model, clip[2 * i][1], pts) < 0.005 for i, r in enumerate(stepped))
     assert [r.tracked for r in run_clip(est, frames, cracker_model.name)] == [False] * 4
+
+
+def test_view_turn_counts_moves_around_the_object_not_rolls():
+    T = clip_pose(0, np.zeros(3))
+    roll = np.eye(4)
+    roll[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.0, 0.7]))[0]  # about the optical axis
+    assert view_turn_deg(T, roll @ T) < 1e-3
+    view = -T[:3, :3].T @ T[:3, 3]  # the camera as seen from the object
+    axis = np.cross(view, [0.0, 0.0, 1.0])
+    turn = np.eye(4)
+    turn[:3, :3] = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.deg2rad(25.0))[0]  # the object turned 25 deg
+    assert view_turn_deg(T, T @ turn) == pytest.approx(25.0, abs=1e-6)
+    spin = np.eye(4)
+    spin[:3, :3] = cv2.Rodrigues(view / np.linalg.norm(view) * 1.0)[0]  # about the line of sight itself
+    assert view_turn_deg(T, T @ spin) < 1e-3
+
+
+def test_a_track_refreshes_when_the_view_has_turned(cracker_model, cracker_library, clip):
+    """The clip turns 3 degrees a frame: with ``refresh_turn_deg`` 20 the track is refreshed (a render and a
+    seeding: time on ``seed``) once the camera has gone 20 degrees around the box, long before 32 frames."""
+    refreshed = {}
+    for turn in (20.0, 0.0):
+        est = make_estimator(cracker_model, cracker_library, refresh_turn_deg=turn)
+        recs = run_clip(est, [frame_of(img, i) for i, (img, _) in enumerate(clip)], cracker_model.name)
+        assert all(r.tracked for r in recs[1:])
+        refreshed[turn] = [i for i, r in enumerate(recs) if i and r.timings.get("seed", 0) > 0]
+    assert refreshed[0.0] == [] and refreshed[20.0] and refreshed[20.0][0] in (7, 8)
+
+
+def test_a_pose_the_frame_does_not_look_like_starts_no_track(cracker_model, cracker_library, clip):
+    """``track.min_match``: a confident but wrong full estimate (the box turned 40 degrees) is not followed,
+    and a refresh at a pose that has turned away from the frame ends the track; at the true pose both go on."""
+    img, T = clip[0]
+    cam = Camera(K_SYN, 640, 480)
+    gray, lab = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), cv2.cvtColor(img, cv2.COLOR_RGB2LAB)
+    turned = T.copy()
+    turned[:3, :3] = T[:3, :3] @ cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(40.0)]))[0]
+    name = cracker_model.name
+    for min_match, pose, expect in ((0.35, T, True), (0.35, turned, False), (0.0, turned, True)):
+        est = make_estimator(cracker_model, cracker_library, min_match=min_match)
+        rec = PoseRecord("", name, "ok", cam_from_model=pose, confidence=0.9)
+        track = est._seed(name, gray, rec, cam, (), lab)
+        assert (track is not None) == expect, (min_match, expect)
+    est = make_estimator(cracker_model, cracker_library)
+    start = est._seed(name, gray, PoseRecord("", name, "ok", cam_from_model=T, confidence=0.9), cam, (), lab)
+    assert est._refresh(name, gray, TrackResult(start, len(start.xy), 0.1), cam, (), lab) is not None
+    wrong = dataclasses.replace(start, cam_from_model=turned)
+    assert est._refresh(name, gray, TrackResult(wrong, len(start.xy), 0.1), cam, (), lab) is None
 
 
 def test_tracking_with_lens_distortion(cracker_model, cracker_library, clip):
