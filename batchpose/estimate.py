@@ -889,7 +889,7 @@ class PoseEstimator:
             turned = turned and view_turn_deg(key, res.track.cam_from_model) > tc.refresh_turn_deg
             if tc.refresh_every and (old_age >= tc.refresh_every or thinning or turned):
                 t1 = time.perf_counter()
-                if lab is None:
+                if lab is None and tc.min_match > 0:
                     lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
                 res = self._refresh(name, gray, res, camera, hidden[k] if hidden else (), lab)
                 t_refresh = time.perf_counter() - t1
@@ -948,7 +948,7 @@ class PoseEstimator:
             for rec in seeds:
                 t0 = time.perf_counter() - t_hidden
                 in_front = hidden_now[placed.index(rec.obj_name)] if hidden_now else ()
-                if lab is None:
+                if lab is None and tc.min_match > 0:
                     lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
                 tr = self._seed(rec.obj_name, gray, rec, camera, in_front, lab)
                 rec.timings["seed"] = time.perf_counter() - t0
