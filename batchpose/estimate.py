@@ -869,7 +869,13 @@ class PoseEstimator:
             follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc, hidden) if due else []
         )
         followed = dict(zip(due, moved_all, strict=True))
-        lab = None  # the frame in Lab, made for the first refresh
+        labs: list[np.ndarray] = []  # the frame in Lab, made once, for the first check (``track.min_match``)
+
+        def frame_lab() -> np.ndarray | None:
+            if tc.min_match > 0 and not labs:
+                labs.append(cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB))
+            return labs[0] if labs else None
+
         t_flow = (time.perf_counter() - t0) / max(len(due), 1)  # one flow call for all: each pays its share
         for k, name in enumerate(due):
             tr = tracks[name]
@@ -889,9 +895,7 @@ class PoseEstimator:
             turned = turned and view_turn_deg(key, res.track.cam_from_model) > tc.refresh_turn_deg
             if tc.refresh_every and (old_age >= tc.refresh_every or thinning or turned):
                 t1 = time.perf_counter()
-                if lab is None and tc.min_match > 0:
-                    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
-                res = self._refresh(name, gray, res, camera, hidden[k] if hidden else (), lab)
+                res = self._refresh(name, gray, res, camera, hidden[k] if hidden else (), frame_lab())
                 t_refresh = time.perf_counter() - t1
                 if res is None:
                     log.debug("%s: track of %s no longer matches the mesh, estimating afresh", frame.frame_id, name)
@@ -948,9 +952,7 @@ class PoseEstimator:
             for rec in seeds:
                 t0 = time.perf_counter() - t_hidden
                 in_front = hidden_now[placed.index(rec.obj_name)] if hidden_now else ()
-                if lab is None and tc.min_match > 0:
-                    lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
-                tr = self._seed(rec.obj_name, gray, rec, camera, in_front, lab)
+                tr = self._seed(rec.obj_name, gray, rec, camera, in_front, frame_lab())
                 rec.timings["seed"] = time.perf_counter() - t0
                 if tr is not None:
                     self._tracks[rec.obj_name] = tr
