@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from batchpose.config import EstimatorConfig, config_hash
+from batchpose.config import EstimatorConfig, config_hash, to_dict
 from batchpose.errors import DataError
 from batchpose.mesh import ObjectModel
 from batchpose.templates import TemplateLibrary, render_templates
@@ -46,14 +46,19 @@ def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: in
     return K, w, h
 
 
+#: FeatureConfig fields that only change how frames are searched, not the templates: left out of the key.
+QUERY_ONLY_FEATURES = ("retry_contrast_threshold", "retry_sigma")
+
+
 def library_key(model: ObjectModel, conf: EstimatorConfig, K: np.ndarray, width: int, height: int) -> str:
+    features = {k: v for k, v in to_dict(conf.features).items() if k not in QUERY_ONLY_FEATURES}
     return config_hash(
         LIBRARY_FORMAT,
         model.content_hash,
         model.scale,
         conf.mesh,
         conf.render,
-        conf.features,
+        features,
         np.round(np.asarray(K, float), 4).tolist(),
         width,
         height,

@@ -143,7 +143,7 @@ class PoseEstimator:
         self.models = models or {}
         self.renderer = renderer
         self._sift = make_sift(conf.features)
-        self._sift_retry = None
+        self._sift_retry: dict[float, object] = {}
         self._lib_index: dict[str, object] = {}
         # This image's nearest template descriptors of a keypoint set, per object: [(descriptors, result)].
         self._nearest: dict[str, list[tuple[np.ndarray, tuple]]] = {}
@@ -258,8 +258,16 @@ class PoseEstimator:
     def _retry(self, records: list[PoseRecord], gray, camera: Camera, gt_by_name: dict, frame_id: str, skip):
         """``features.retry_contrast_threshold``: estimate each object a full estimate did not find, or found
         only weakly (confidence below ``verify_below``), once more from keypoints detected at the lower
-        contrast threshold; keep the new record when it is ok and more confident. Not the objects in
-        ``skip``."""
+        contrast threshold; keep the new record when it is ok and more confident. With
+        ``features.retry_sigma``, the objects still not found or weak get a second retry the same way, from
+        keypoints detected at that SIFT σ. Not the objects in ``skip``."""
+        fc = self.conf.features
+        for sigma in (fc.sigma, fc.retry_sigma):
+            if sigma > 0 and not self._retry_once(records, gray, camera, gt_by_name, frame_id, skip, sigma):
+                return
+
+    def _retry_once(self, records, gray, camera: Camera, gt_by_name: dict, frame_id: str, skip, sigma) -> bool:
+        """One retry stage (see :meth:`_retry`); False when no object needed it."""
         weak = self.conf.verify_below
         todo = [
             i
@@ -267,36 +275,33 @@ class PoseEstimator:
             if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in skip
         ]
         if not todo:
-            return
+            return False
         t0 = time.perf_counter()
-        if self._sift_retry is None:
-            fc = self.conf.features
-            self._sift_retry = make_sift(dataclasses.replace(fc, contrast_threshold=fc.retry_contrast_threshold))
-        keypoints = detect_shapes(gray, self.conf.features, sift=self._sift_retry)
+        fc = self.conf.features
+        sift = self._sift_retry.get(sigma)
+        if sift is None:
+            sift = make_sift(dataclasses.replace(fc, contrast_threshold=fc.retry_contrast_threshold, sigma=sigma))
+            self._sift_retry[sigma] = sift
+        keypoints = detect_shapes(gray, fc, sift=sift)
         index = None
         if self.conf.match.direction == "template_to_query":
             index = flann_index(keypoints[1], self.conf.match)
         t_sift = (time.perf_counter() - t0) / len(todo)
+        how = f"contrast {fc.retry_contrast_threshold:g}" + ("" if sigma == fc.sigma else f", sigma {sigma:g}")
         for i in todo:
             first = records[i]
             rec = self._estimate_object(
-                first.obj_name,
-                gray,
-                keypoints,
-                index,
-                camera,
-                gt_by_name.get(first.obj_name),
-                frame_id,
-                sift=self._sift_retry,
+                first.obj_name, gray, keypoints, index, camera, gt_by_name.get(first.obj_name), frame_id, sift=sift
             )
-            for k, v in first.timings.items():  # both attempts' time is the pair's
+            for k, v in first.timings.items():  # every attempt's time is the pair's
                 rec.timings[k] = rec.timings.get(k, 0.0) + v
             rec.timings["sift"] = rec.timings.get("sift", 0.0) + t_sift
             if rec.ok and (not first.ok or rec.confidence > first.confidence):
-                rec.reason = f"found with keypoints at contrast {self.conf.features.retry_contrast_threshold:g}"
+                rec.reason = f"found with keypoints at {how}"
                 records[i] = rec
             else:
                 first.timings = rec.timings
+        return True
 
     def _roi_mask(self, xy_q: np.ndarray, camera: Camera, cam_from_model: np.ndarray | None, name: str):
         if self.conf.match.roi == "none":

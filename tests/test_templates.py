@@ -139,3 +139,20 @@ def test_root_sift_descriptors_are_the_hellinger_map_of_sift_and_key_their_own_l
     np.testing.assert_allclose(d_r, 512.0 * np.sqrt(d_s / d_s.sum(axis=1, keepdims=True)), rtol=1e-4, atol=1e-3)
     key = build_templates.library_key
     assert key(cracker_model, root, K_SYN, 640, 480) != key(cracker_model, sift, K_SYN, 640, 480)
+
+
+def test_query_only_feature_settings_share_one_library(cracker_model):
+    """The retries' settings change how frames are searched, not the templates: one library for all of
+    them, so trying ``--set features.retry_sigma=1.2`` renders nothing again; a template setting does."""
+    import dataclasses  # noqa: PLC0415
+
+    conf = EstimatorConfig()
+    key = build_templates.library_key
+
+    def with_features(**kw) -> EstimatorConfig:
+        return dataclasses.replace(conf, features=dataclasses.replace(conf.features, **kw))
+
+    base = key(cracker_model, conf, K_SYN, 640, 480)
+    assert key(cracker_model, with_features(retry_sigma=1.2), K_SYN, 640, 480) == base
+    assert key(cracker_model, with_features(retry_contrast_threshold=0.0), K_SYN, 640, 480) == base
+    assert key(cracker_model, with_features(contrast_threshold=0.03), K_SYN, 640, 480) != base

@@ -306,6 +306,8 @@ def test_track_config_is_checked():
         load_estimator_config({"track": {"hidden_retry": 1}})
     with pytest.raises(ConfigError, match="retry_contrast_threshold must be 0 \\(off\\) or below"):
         load_estimator_config({"features": {"retry_contrast_threshold": 0.03}})
+    with pytest.raises(ConfigError, match="retry_sigma must be 0 \\(off\\) or positive, got -1"):
+        load_estimator_config({"features": {"retry_sigma": -1}})
     with pytest.raises(ConfigError, match="strong_inliers must be >= 0"):
         load_estimator_config({"strong_inliers": -1})
 
