@@ -53,6 +53,28 @@ def compose(rng, model, T) -> np.ndarray:
     return np.clip(noisy, 0, 255).astype(np.uint8)
 
 
+def estimator_with(model, library, **features) -> PoseEstimator:
+    """The default estimator of one object, with these ``features`` settings."""
+    import dataclasses
+
+    conf = EstimatorConfig()
+    conf = dataclasses.replace(conf, features=dataclasses.replace(conf.features, **features))
+    return PoseEstimator(conf, {model.name: library}, models={model.name: model}, renderer=get_renderer())
+
+
+def dim_frame(rng, model, T, contrast: float, blur_px: float = 0.0) -> np.ndarray:
+    """The object lit at pose ``T`` over a textured background, its colours pulled towards their mean to
+    ``contrast`` of their spread, optionally blurred, with sensor noise."""
+    rgb, depth = get_renderer().render(model.content_hash, model.mesh, T, K_SYN, 640, 480, "lit")
+    img = textured_background(rng).astype(np.float32)
+    obj = rgb.astype(np.float32)
+    mean = obj[depth > 0].mean(axis=0)
+    img[depth > 0] = (mean + contrast * (obj - mean))[depth > 0]
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    return np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+
+
 def add_error(T_est: np.ndarray, T_gt: np.ndarray, pts: np.ndarray) -> float:
     a = pts @ T_est[:3, :3].T + T_est[:3, 3]
     b = pts @ T_gt[:3, :3].T + T_gt[:3, 3]
@@ -86,28 +108,15 @@ def test_a_dim_object_is_found_by_the_retry_at_a_lower_contrast(cracker_model, c
     retry at ``features.retry_contrast_threshold`` 0.01 finds at least four more, within 0.05 d; a confident
     pose the first estimate found stays exactly as it was, a weak one is replaced only by a stronger one.
     An object in ``no_retry`` gets the first estimate only."""
-    import dataclasses
-
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     cam = Camera(K_SYN, 640, 480)
-
-    def estimator(retry: float) -> PoseEstimator:
-        conf = EstimatorConfig()
-        conf = dataclasses.replace(conf, features=dataclasses.replace(conf.features, retry_contrast_threshold=retry))
-        models = {cracker_model.name: cracker_model}
-        return PoseEstimator(conf, {cracker_model.name: cracker_library}, models=models, renderer=get_renderer())
-
-    plain, retried = estimator(0.0), estimator(0.01)
+    plain = estimator_with(cracker_model, cracker_library, retry_contrast_threshold=0.0)
+    retried = estimator_with(cracker_model, cracker_library, retry_contrast_threshold=0.01)
     rng = np.random.default_rng(7)
     found = {"plain": 0, "retry": 0}
     for _ in range(6):
         T = random_pose(rng, cracker_model.center_m)
-        rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
-        img = textured_background(rng).astype(np.float32)
-        obj = rgb.astype(np.float32)
-        mean = obj[depth > 0].mean(axis=0)
-        img[depth > 0] = (mean + 0.1 * (obj - mean))[depth > 0]
-        img = np.clip(img + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        img = dim_frame(rng, cracker_model, T, 0.1)
         a = plain.estimate_image(img, cam, [cracker_model.name])[0]
         b = retried.estimate_image(img, cam, [cracker_model.name])[0]
         c = retried.estimate_image(img, cam, [cracker_model.name], no_retry=frozenset([cracker_model.name]))[0]
@@ -131,28 +140,15 @@ def test_a_second_retry_at_a_finer_sigma_only_touches_what_the_first_left_weak(c
     retry at the lower contrast gives a confident pose, the second retry leaves it exactly as it was; where
     it leaves the object missing or weak, the second retry's pose is kept only when it is ok and more
     confident, and then says so. In these frames it does replace at least one pose."""
-    import dataclasses
-
     cam = Camera(K_SYN, 640, 480)
-
-    def estimator(sigma: float) -> PoseEstimator:
-        conf = EstimatorConfig()
-        conf = dataclasses.replace(conf, features=dataclasses.replace(conf.features, retry_sigma=sigma))
-        models = {cracker_model.name: cracker_model}
-        return PoseEstimator(conf, {cracker_model.name: cracker_library}, models=models, renderer=get_renderer())
-
-    once, twice = estimator(0.0), estimator(1.2)
+    once = estimator_with(cracker_model, cracker_library, retry_sigma=0.0)
+    twice = estimator_with(cracker_model, cracker_library, retry_sigma=1.2)
     rng = np.random.default_rng(11)
     replaced = 0
     for _ in range(8):
         T = random_pose(rng, cracker_model.center_m)
         T[:3, 3] *= 2.8
-        rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
-        img = textured_background(rng).astype(np.float32)
-        obj = rgb.astype(np.float32)
-        mean = obj[depth > 0].mean(axis=0)
-        img[depth > 0] = (mean + 0.2 * (obj - mean))[depth > 0]
-        img = np.clip(cv2.GaussianBlur(img, (0, 0), 1.0) + rng.normal(0, 2.0, img.shape), 0, 255).astype(np.uint8)
+        img = dim_frame(rng, cracker_model, T, 0.2, blur_px=1.0)
         a = once.estimate_image(img, cam, [cracker_model.name])[0]
         b = twice.estimate_image(img, cam, [cracker_model.name])[0]
         if a.ok and a.confidence >= once.conf.verify_below:
