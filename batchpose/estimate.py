@@ -262,7 +262,7 @@ class PoseEstimator:
         ``features.retry_sigma``, the objects still not found or weak get a second retry the same way, from
         keypoints detected at that SIFT σ. Not the objects in ``skip``."""
         fc = self.conf.features
-        for sigma in (fc.sigma, fc.retry_sigma):
+        for sigma in dict.fromkeys((fc.sigma, fc.retry_sigma)):  # a retry_sigma equal to sigma: one retry
             if sigma > 0 and not self._retry_once(records, gray, camera, gt_by_name, frame_id, skip, sigma):
                 return
 
@@ -874,12 +874,10 @@ class PoseEstimator:
             follow_all(prev["gray"], gray, [tracks[n] for n in due], camera.K, camera.dist, tc, hidden) if due else []
         )
         followed = dict(zip(due, moved_all, strict=True))
-        labs: list[np.ndarray] = []  # the frame in Lab, made once, for the first check (``track.min_match``)
+        lab = _LazyLab(rgb, gray)  # the frame in Lab, made once, for the first check (``track.min_match``)
 
         def frame_lab() -> np.ndarray | None:
-            if tc.min_match > 0 and not labs:
-                labs.append(cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB))
-            return labs[0] if labs else None
+            return lab.get() if tc.min_match > 0 else None
 
         t_flow = (time.perf_counter() - t0) / max(len(due), 1)  # one flow call for all: each pays its share
         for k, name in enumerate(due):
