@@ -163,6 +163,9 @@ class PoseEstimator:
         self._hulls: dict[str, np.ndarray] = {}
         self._prev: dict | None = None
         self._lab: _LazyLab | None = None  # the frame estimate_image is estimating, in Lab
+        # id(retry's record) -> (that record, the ok pose it replaced): the texture check falls back to the
+        # replaced pose when it rejects the replacement (the current frame's; estimate_image resets it)
+        self._replaced: dict[int, tuple[PoseRecord, PoseRecord]] = {}
 
     # -- per-object caches -------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -231,6 +234,7 @@ class PoseEstimator:
         camera.validate(frame_id)
         check_image(rgb, frame_id)
         self._nearest.clear()
+        self._replaced.clear()
         for name in obj_names:
             if name not in self.libraries:
                 raise BatchposeError(f"{frame_id}: no template library for object {name!r}")
@@ -299,6 +303,8 @@ class PoseEstimator:
             if rec.ok and (not first.ok or rec.confidence > first.confidence):
                 rec.reason = f"found with keypoints at {how}"
                 records[i] = rec
+                if first.ok:
+                    self._replaced[id(rec)] = (rec, first)
             else:
                 first.timings = rec.timings
         return True
@@ -1172,28 +1178,48 @@ class PoseEstimator:
         shared = (time.perf_counter() - t0) / len(weak)
         for rec in weak:
             t0 = time.perf_counter()
-            ren_rgb, depth = shown[rec.obj_name]
-            seen = depth > 0
-            weak_why = f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g})"
-            if seen.sum() < VERIFY_MIN_PX:  # beyond the renderer's far plane, or off the image
-                rec.status = "low_confidence"
-                rec.reason = (
-                    f"{weak_why} that shows {int(seen.sum())} px of the mesh in the frame (object centre "
-                    f"{rec.cam_from_model[2, 3]:.1f} m away): too little to check it against"
-                )
-            else:
-                for name, (_, other) in shown.items():
-                    if name != rec.obj_name:
-                        seen &= ~((other > 0) & (other < depth - 0.01))
-                if seen.sum() >= VERIFY_MIN_PX:  # mostly hidden by reported poses: nothing to judge it by
-                    match = texture_match(lab[seen], ren_rgb[seen])
-                    if match < conf.verify_min_match:
-                        rec.status = "low_confidence"
-                        rec.reason = (
-                            f"{weak_why} whose mesh does not look like the frame there (texture match "
-                            f"{match:.2f} < {conf.verify_min_match:g})"
-                        )
+            why = self._looks_wrong(rec, shown[rec.obj_name], shown, lab)
+            failed = rec
+            # A retry's more confident pose that fails: the pose it replaced, checked in turn, when that one passes
+            while why is not None and id(failed) in self._replaced:
+                failed = self._replaced[id(failed)][1]
+                view = self._render(failed.obj_name, failed.cam_from_model, cam)
+                if self._looks_wrong(failed, view, shown, lab) is None:
+                    failed.timings = rec.timings
+                    failed.reason = (
+                        f"{failed.reason + '; ' if failed.reason else ''}kept over a retry's more confident pose: {why}"
+                    )
+                    records[next(i for i, r in enumerate(records) if r is rec)] = failed
+                    shown[rec.obj_name] = view
+                    rec, why = failed, None
+            if why is not None:
+                rec.status, rec.reason = "low_confidence", why
             rec.timings["refine"] = rec.timings.get("refine", 0.0) + shared + time.perf_counter() - t0
+
+    def _looks_wrong(self, rec: PoseRecord, view, shown: dict, lab: np.ndarray) -> str | None:
+        """Why the weak pose ``rec``, whose mesh renders as ``view`` (rgb, depth), fails ``verify_below``'s texture
+        check (over the pixels the other poses in ``shown`` do not hide); None when it passes."""
+        conf = self.conf
+        ren_rgb, depth = view
+        seen = depth > 0
+        weak_why = f"weak pose (confidence {rec.confidence:.2f} < verify_below {conf.verify_below:g})"
+        if seen.sum() < VERIFY_MIN_PX:  # beyond the renderer's far plane, or off the image
+            return (
+                f"{weak_why} that shows {int(seen.sum())} px of the mesh in the frame (object centre "
+                f"{rec.cam_from_model[2, 3]:.1f} m away): too little to check it against"
+            )
+        for name, (_, other) in shown.items():
+            if name != rec.obj_name:
+                seen &= ~((other > 0) & (other < depth - 0.01))
+        if seen.sum() < VERIFY_MIN_PX:  # mostly hidden by reported poses: nothing to judge it by
+            return None
+        match = texture_match(lab[seen], ren_rgb[seen])
+        if match < conf.verify_min_match:
+            return (
+                f"{weak_why} whose mesh does not look like the frame there (texture match "
+                f"{match:.2f} < {conf.verify_min_match:g})"
+            )
+        return None
 
     def _use_plane(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``plane.enabled``: look for each object without a pose on the surface the confidently found ones rest
@@ -1323,6 +1349,7 @@ class PoseEstimator:
                     log.warning("%s: %s failed (%s: %s); poses as estimated before it", frame.frame_id,
                                 stage.__name__.lstrip("_"), type(e).__name__, e)  # fmt: skip
                     log.debug("%s failed", stage.__name__, exc_info=True)
+        self._replaced.clear()
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

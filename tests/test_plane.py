@@ -221,6 +221,32 @@ def test_a_weak_pose_must_look_like_the_frame(cracker_model, cracker_library, of
         )
 
 
+@pytest.mark.parametrize("replaced_off_m", [0.0, 0.3])
+def test_a_retry_pose_the_texture_check_rejects_gives_back_the_pose_it_replaced(
+    cracker_model, cracker_library, replaced_off_m
+):
+    """A retry's more confident pose that does not look like the frame is not reported; the weak pose it replaced
+    is checked in turn and reported when it passes (both were lost before), not when it fails too."""
+    frame, img, models, found, T = _scene(cracker_model, True)
+    wrong, replaced = T.copy(), T.copy()
+    wrong[:3, 3] += [0.25, 0.0, 0.0]
+    replaced[:3, 3] += [-replaced_off_m, 0.0, 0.0]
+    est = PoseEstimator(load_estimator_config({}), {cracker_model.name: cracker_library}, models=models,
+                        renderer=get_renderer())  # fmt: skip
+    first = PoseRecord("table", cracker_model.name, "ok", cam_from_model=replaced, confidence=0.35)
+    retry = PoseRecord("table", cracker_model.name, "ok", "found with keypoints at contrast 0.01",
+                       cam_from_model=wrong, confidence=0.45, timings={"match": 1.0})  # fmt: skip
+    est._replaced[id(retry)] = (retry, first)  # as _retry_once records a replacement
+    records = [*found, retry]
+    est._verify_weak(frame, img, records)
+    rejected = "weak pose (confidence 0.45 < verify_below 0.5) whose mesh does not look like the frame there"
+    if replaced_off_m == 0.0:
+        assert records[-1] is first and first.ok and first.timings["match"] == 1.0
+        assert first.reason.startswith(f"kept over a retry's more confident pose: {rejected}"), first.reason
+    else:
+        assert records[-1] is retry and retry.status == "low_confidence" and retry.reason.startswith(rejected)
+
+
 @pytest.mark.parametrize("where", ["far", "off"])
 def test_a_weak_pose_the_frame_barely_shows_is_not_kept(cracker_model, cracker_library, where):
     """verify_below: a weak pose that puts the object where its mesh covers (almost) no pixel of the frame —
