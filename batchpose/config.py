@@ -463,6 +463,19 @@ class PlaneConfig:
     (found objects left out) by at least this. On ycbv_dev the mustard bottle found 3.0-3.9; objects the
     frame does not show, placed where the colours and texture fit best (a white marker on the white table,
     a can on the mustard bottle), 0.3-1.0."""
+    edge_weight: float = 0.5
+    """Weight of the edge score (:attr:`batchpose.plane.Placed.edge`: how closely the frame's edges follow
+    the placed silhouette's outline) in the refinement's score. 0: edges are not looked at while refining.
+    It also aligns wrong placements with whatever edges are near: alone it took the poses of objects the
+    frames do not show from 2 to 7 (tabletop seeds 0-1), with ``min_edge`` 0.4 from 4 to 10 (seeds 0-5);
+    hence ``min_edge``'s 0.6."""
+    min_edge: float = 0.6
+    """A placement is kept only if its edge score is at least this (0: not checked; nor where the frame has
+    no edges near the placement at all). At their true poses the tabletop's markers and bleach cleansers have
+    0.67-0.97 of their outline within 1.5 px of an edge; with ``edge_weight`` 0.5 the
+    placements of absent objects that passed every other check scored 0.40-0.62 (tabletop seeds 0-2; this
+    value was chosen from them). Tabletop seeds 0-3 against 0 / 0: right 20 -> 23, wrong 2 -> 1, absent
+    objects placed 2 -> 0 (reports/ACCURACY.md, "Session 27")."""
 
 
 @dataclass(frozen=True)
@@ -708,6 +721,8 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         ("min_visible", 0 < pc.min_visible <= 1, "be in (0, 1]"),
         ("min_match", -1 <= pc.min_match <= 1, "be in [-1, 1]"),
         ("min_contrast", pc.min_contrast >= 0, "be >= 0"),
+        ("edge_weight", pc.edge_weight >= 0, "be >= 0"),
+        ("min_edge", 0 <= pc.min_edge <= 1, "be in [0, 1]"),
     ):
         if not ok:
             raise ConfigError(f"{where}: plane.{key} must {need}, got {getattr(pc, key)}")

@@ -1287,6 +1287,7 @@ class PoseEstimator:
                 f"{how} plane search ({why}): resting on the surface under {', '.join(plane.objects)}, "
                 f"{100 * placed.visible:.0f}% of it unhidden, colour log-odds {placed.colour:.1f}, "
                 f"texture match {placed.match:.2f}, contrast {placed.contrast:.1f}"
+                + ("" if placed.edge == 0 or not np.isfinite(placed.edge) else f", edges {placed.edge:.2f}")
             )
 
     def _stable_faces(self, name: str) -> tuple[np.ndarray, np.ndarray]:

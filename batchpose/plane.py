@@ -25,13 +25,20 @@ object standing on it at a given pixel is at one distance only. For such an obje
 4. **refine**: each is turned about the normal and slid along the plane while the mesh rendered there
    matches the frame better, over the silhouette pixels no found object hides or covers (those behind it
    are the found object's texture): texture correlation in Lab plus ``colour_weight`` x mean colour
-   log-odds (in 15 and 8 degree steps; the best then in 4 and 2);
+   log-odds plus ``edge_weight`` x the edge score (in 15 and 8 degree steps; the best then in 4 and 2).
+   The edge score is how closely the frame's edges (Canny) follow the silhouette's outline: the mean over
+   its outline pixels of exp(-d² / 2 EDGE_PX²), d the distance to the nearest frame edge, leaving out the
+   outline along found objects (their own outline is an edge). It peaks sharply at the right place, where
+   colour and texture change little: on tabletop frames (the share of outline pixels within 1.5 px of an
+   edge) 0.67-0.97 there, 0.3-0.8 one or two centimetres aside, 0.05 (90 % under 0.41) where the search
+   places an object the frame does not show (reports/ACCURACY.md, "Session 27");
 5. **verify**: a placement is kept if at least ``min_visible`` of its silhouette is not hidden by a found
    object, those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
-   silhouette by ``min_contrast`` (it stands out from where it stands), and the texture correlation is
-   at least ``min_match``; with a weak SIFT pose, it must also match the frame better than that pose. The
-   best refined placement that passes is refined in the fine steps (and the next one when that no longer
-   passes).
+   silhouette by ``min_contrast`` (it stands out from where it stands), the texture correlation is at
+   least ``min_match``, and — once finely refined — the edge score at least ``min_edge`` (not checked
+   where the frame has no edges near the placement at all: a blurred frame); with a weak SIFT pose, it
+   must also match the frame better than that pose. The best refined placement that passes (all but the
+   edge check) is refined in the fine steps and kept if it then passes every check (else the next one).
 
 With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
 and searches only when that no longer passes. reports/ACCURACY.md ("Session 10", "Session 11") has the
@@ -71,6 +78,16 @@ PEAKS = 3
 COARSE_RING = 0.1
 #: The ring around a silhouette whose colours :attr:`Placed.contrast` compares with the silhouette's (4 px wide).
 RING_KERNEL = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9))
+#: A silhouette's outline: its pixels with a 4-neighbour outside it.
+OUTLINE_KERNEL = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+#: The frame's edges (:attr:`Placed.edge`): Canny's hysteresis thresholds on the 8-bit grey image ...
+CANNY = (50, 150)
+#: ... and how far (px) an outline pixel may be from the nearest one: its credit is exp(-d² / 2 EDGE_PX²).
+EDGE_PX = 2.0
+#: Outline pixels this near (px) a found object are left out of the edge score: its own outline is an edge.
+EDGE_CLEAR_PX = 2
+#: An edge score needs at least this many outline pixels left (fewer: 0).
+EDGE_MIN_PIXELS = 10
 #: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
 #: is refined with the coarse ones, the best of them then with the fine ones.
 COARSE_STEPS = ((15.0, 0.05), (8.0, 0.025))
@@ -97,6 +114,7 @@ class Placed:
     colour: float  # mean colour log-odds of those pixels
     match: float  # texture correlation (Lab) of the rendered mesh with the frame over those pixels
     contrast: float  # ``colour`` less that of the ring of pixels just outside the silhouette
+    edge: float = 0.0  # how closely the frame's edges follow the silhouette's outline; NaN: no edges near
     followed: bool = False
 
 
@@ -192,10 +210,11 @@ class _Judge:
     """Scores poses against one frame: renders the mesh in a ``size``-pixel square around the object's centre
     (far cheaper than the whole frame) and compares it with the frame where no found object hides it."""
 
-    def __init__(self, rgb, odds, found_mask, occluder_depth, render, K, target: Target, size: int, conf):
+    def __init__(self, rgb, odds, found_mask, occluder_depth, render, K, target: Target, size: int, conf, edges=None):
         self.lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
         self.odds, self.found_mask, self.occluder_depth = odds, found_mask, occluder_depth
         self.render, self.K, self.target, self.size, self.conf = render, K, target, size, conf
+        self.edges = edges  # (edge credit per pixel, pixels too near a found object) or None: not scored
 
     def __call__(self, T: np.ndarray) -> tuple[float, Placed | None]:
         c = self.K @ (T[:3, :3] @ self.target.centre + T[:3, 3])
@@ -222,8 +241,17 @@ class _Judge:
         colour = float(odds[seen].mean())
         ring = cv2.dilate(sil.astype(np.uint8), RING_KERNEL).astype(bool) & ~sil & ~self.found_mask[win]
         contrast = colour - float(odds[ring].mean()) if ring.any() else colour
-        placed = Placed(T, k / n, colour, texture_match(self.lab[win][seen], ren_rgb[crop][seen]), contrast)
-        return placed.match + self.conf.colour_weight * placed.colour, placed
+        edge = 0.0
+        if self.edges is not None:
+            credit, near_found, count = self.edges
+            outline = sil & ~cv2.erode(sil.astype(np.uint8), OUTLINE_KERNEL).astype(bool) & seen & ~near_found[win]
+            if count[yb, xb] - count[ya, xb] - count[yb, xa] + count[ya, xa] < EDGE_MIN_PIXELS:
+                edge = np.nan  # no edges here at all (a blurred frame): the cue says nothing
+            elif outline.sum() >= EDGE_MIN_PIXELS:
+                edge = float(credit[win][outline].mean())
+        placed = Placed(T, k / n, colour, texture_match(self.lab[win][seen], ren_rgb[crop][seen]), contrast, edge)
+        score = placed.match + self.conf.colour_weight * placed.colour
+        return score + (self.conf.edge_weight * edge if np.isfinite(edge) else 0.0), placed
 
 
 def search_plane(
@@ -252,15 +280,18 @@ def search_plane(
     background = np.bincount(bins[~found_mask], minlength=N_BINS) / max(int((~found_mask).sum()), 1)
     odds = np.log((target.hist + 1e-3) / (background + 1e-3)).clip(-3, 3).astype(np.float32)[bins]
     odds[found_mask] = 0.0  # explained by the objects found there
+    edges = _edge_credit(rgb, found_mask) if conf.edge_weight > 0 or conf.min_edge > 0 else None
 
     def judge_around(poses: list[np.ndarray]) -> tuple[_Judge, float]:
         """A judge rendering a square that holds the object at any of ``poses``, and the incumbent's score."""
         span = max(_span_px(T, K, target) for T in [*poses, *([] if incumbent is None else [incumbent])])
         size = min(int(np.ceil((1.2 * span + 8) / 32)) * 32, 2 * max(rgb.shape[:2]))
-        judge = _Judge(rgb, odds, found_mask, occluder_depth, render, K, target, size, conf)
+        judge = _Judge(rgb, odds, found_mask, occluder_depth, render, K, target, size, conf, edges)
         return judge, -np.inf if incumbent is None else judge(incumbent)[0]
 
-    def passes(score: float, p: Placed | None, floor: float) -> bool:
+    def passes(score: float, p: Placed | None, floor: float, final: bool = True) -> bool:
+        """The checks; the edge score only on a ``final`` (finely refined) placement: a centimetre off, the
+        coarse steps' placements can miss the outline they find."""
         return (
             p is not None
             and score > floor
@@ -268,6 +299,7 @@ def search_plane(
             and p.colour >= conf.min_colour
             and p.match >= conf.min_match
             and p.contrast >= conf.min_contrast
+            and not (final and p.edge < conf.min_edge)  # NaN: no edges to check with
         )
 
     if previous is not None:
@@ -287,12 +319,24 @@ def search_plane(
     # Refined, a wrong placement can match the frame's texture better than the right one yet not stand out
     # from its surroundings: the best of those that pass the checks goes on.
     refined = [_refine(places[k], plane, target, judge, COARSE_STEPS) for k in starts]
-    refined = sorted((r for r in refined if passes(*r, floor)), key=lambda r: -r[0])
+    refined = sorted((r for r in refined if passes(*r, floor, final=False)), key=lambda r: -r[0])
     for start in refined:
         best = _refine(start[1].cam_from_model, plane, target, judge, FINE_STEPS)
         if passes(*best, floor):
             return best[1]
     return None
+
+
+def _edge_credit(rgb: np.ndarray, found_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per pixel, the edge credit an outline pixel there earns (1 on a frame edge, falling off with the
+    distance to the nearest one over EDGE_PX); the pixels too near a found object to count; and the edge
+    pixels' integral image (how many edges a window holds)."""
+    edges = cv2.Canny(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), *CANNY)
+    dist = cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
+    credit = np.exp(-(np.minimum(dist, 10 * EDGE_PX) ** 2) / (2 * EDGE_PX**2)).astype(np.float32)
+    size = 2 * EDGE_CLEAR_PX + 1
+    near = cv2.dilate(found_mask.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+    return credit, near, cv2.integral((edges > 0).astype(np.uint8))
 
 
 def _span_px(T: np.ndarray, K: np.ndarray, target: Target) -> float:

@@ -87,6 +87,8 @@ def test_resting_faces_of_a_box():
 def test_plane_config_is_checked():
     with pytest.raises(ConfigError, match=r"plane.min_objects must be >= 2, got 1"):
         load_estimator_config({"plane": {"min_objects": 1}})
+    with pytest.raises(ConfigError, match=r"plane.min_edge must be in \[0, 1\], got 1.5"):
+        load_estimator_config({"plane": {"min_edge": 1.5}})
     with pytest.raises(ConfigError, match=r"verify_below must be in \[0, 1\], got 1.5"):
         load_estimator_config({"verify_below": 1.5})
     with pytest.raises(ConfigError, match=r"unknown key.*plane"):
@@ -179,6 +181,37 @@ def test_a_weak_sift_pose_is_replaced_only_by_a_placement_that_fits_better(
     est._use_plane(frame, img, [*found, rec])
     assert rec.ok and rec.reason.startswith("found by the plane search (a weak SIFT pose)") == replaced
     assert (rec.cam_from_model is weak) != replaced and rec.timings["plane"] > 0
+
+
+def test_a_placement_is_scored_by_how_closely_the_frames_edges_follow_its_outline(cracker_model):
+    """``Placed.edge``: at the right place the frame's edges run along the silhouette's outline, a centimetre
+    aside far fewer do; a frame blurred to no edges at all says nothing (NaN: ``plane.min_edge`` is not
+    checked there)."""
+    from batchpose.plane import Target, _edge_credit, _Judge
+
+    _, img, _, _, T = _scene(cracker_model, with_cracker=True)
+    r = get_renderer()
+    m = cracker_model
+    target = Target(np.asarray(m.mesh.convex_hull.vertices), np.asarray(m.mesh.bounding_box.centroid),
+                    m.diameter_m, (), np.zeros(1))  # fmt: skip
+    none_found = np.zeros((480, 640), bool)
+
+    def edge(image: np.ndarray, P: np.ndarray) -> float:
+        judge = _Judge(image, np.zeros((480, 640), np.float32), none_found, np.full((480, 640), np.inf),
+                       lambda P, K, w, h: r.render(m.content_hash, m.mesh, P, K, w, h, "lit"), K_SYN, target, 384,
+                       PlaneConfig(), _edge_credit(image, none_found))  # fmt: skip
+        return judge(P)[1].edge
+
+    aside = T.copy()
+    aside[:3, 3] += 0.01 * CAM_FROM_WORLD[:3, 0]  # 1 cm along the table
+    assert edge(img, T) > 0.85
+    assert edge(img, aside) < edge(img, T) - 0.3
+    assert np.isnan(edge(cv2.GaussianBlur(img, (0, 0), 4), T))
+
+
+def test_plane_search_keeps_no_placement_its_edges_do_not_follow(cracker_model, cracker_library):
+    rec, _ = _plane_search(cracker_model, cracker_library, True, plane={"min_edge": 0.99})
+    assert rec.status == "too_few_matches" and rec.cam_from_model is None
 
 
 def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracker_library, monkeypatch, caplog):
