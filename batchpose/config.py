@@ -475,7 +475,7 @@ class PlaneConfig:
     0.67-0.97 of their outline within 1.5 px of an edge; with ``edge_weight`` 0.5 the
     placements of absent objects that passed every other check scored 0.40-0.62 (tabletop seeds 0-2; this
     value was chosen from them). Tabletop seeds 0-3 against 0 / 0: right 20 -> 23, wrong 2 -> 1, absent
-    objects placed 2 -> 0 (reports/ACCURACY.md, "Session 27")."""
+    objects placed 2 -> 1 (reports/ACCURACY.md, "Session 27")."""
 
 
 @dataclass(frozen=True)
