@@ -86,7 +86,8 @@ CANNY = (50, 150)
 EDGE_PX = 2.0
 #: Outline pixels this near (px) a found object are left out of the edge score: its own outline is an edge.
 EDGE_CLEAR_PX = 2
-#: An edge score needs at least this many outline pixels left (fewer: 0).
+#: An edge score needs at least this many outline pixels left (fewer: 0), and this many frame edge pixels in
+#: the judged square (fewer: NaN, the frame says nothing there).
 EDGE_MIN_PIXELS = 10
 #: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
 #: is refined with the coarse ones, the best of them then with the fine ones.
@@ -214,7 +215,7 @@ class _Judge:
         self.lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
         self.odds, self.found_mask, self.occluder_depth = odds, found_mask, occluder_depth
         self.render, self.K, self.target, self.size, self.conf = render, K, target, size, conf
-        self.edges = edges  # (edge credit per pixel, pixels too near a found object) or None: not scored
+        self.edges = edges  # :func:`_edge_credit`'s maps, or None: edges not scored
 
     def __call__(self, T: np.ndarray) -> tuple[float, Placed | None]:
         c = self.K @ (T[:3, :3] @ self.target.centre + T[:3, 3])
@@ -244,11 +245,12 @@ class _Judge:
         edge = 0.0
         if self.edges is not None:
             credit, near_found, count = self.edges
-            outline = sil & ~cv2.erode(sil.astype(np.uint8), OUTLINE_KERNEL).astype(bool) & seen & ~near_found[win]
             if count[yb, xb] - count[ya, xb] - count[yb, xa] + count[ya, xa] < EDGE_MIN_PIXELS:
                 edge = np.nan  # no edges here at all (a blurred frame): the cue says nothing
-            elif outline.sum() >= EDGE_MIN_PIXELS:
-                edge = float(credit[win][outline].mean())
+            else:
+                inner = cv2.erode(sil.astype(np.uint8), OUTLINE_KERNEL).astype(bool)
+                outline = sil & ~inner & seen & ~near_found[win]
+                edge = float(credit[win][outline].mean()) if outline.sum() >= EDGE_MIN_PIXELS else 0.0
         placed = Placed(T, k / n, colour, texture_match(self.lab[win][seen], ren_rgb[crop][seen]), contrast, edge)
         score = placed.match + self.conf.colour_weight * placed.colour
         return score + (self.conf.edge_weight * edge if np.isfinite(edge) else 0.0), placed
