@@ -21,7 +21,9 @@ object standing on it at a given pixel is at one distance only. For such an obje
    it — a broad patch of the object's colours (a shadow under a grey-and-black marker, a found object's
    edge) holds more of them than a thin object does, but does not stand out. Rendered, the ``starts``
    whose texture and colour match the frame best go on (a silhouette cannot tell a box's front from its
-   back), and the best at two places none of those is at;
+   back), and the best at two places none of those is at. Near the frame's border a silhouette is scored
+   on its part in the frame (the map padded with its median: the frame goes on as it mostly is), if at
+   least ``min_visible`` of it is in the frame;
 4. **refine**: each is turned about the normal and slid along the plane while the mesh rendered there
    matches the frame better, over the silhouette pixels no found object hides or covers (those behind it
    are the found object's texture): texture correlation in Lab plus ``colour_weight`` x mean colour
@@ -36,8 +38,11 @@ object standing on it at a given pixel is at one distance only. For such an obje
    object, those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
    silhouette by ``min_contrast`` (it stands out from where it stands), the texture correlation is at
    least ``min_match``, and — once finely refined — the edge score at least ``min_edge`` (not checked
-   where the frame has no edges near the placement at all: a blurred frame); with a weak SIFT pose, it
-   must also match the frame better than that pose. The best refined placement that passes (all but the
+   where the frame has no edges near the placement at all: a blurred frame). A finely refined placement
+   whose edge score reaches ``edge_confirms`` may fail one of the two colour checks (``min_colour``,
+   ``min_contrast``): a pale bottle on a white table has the table's colours, a thin marker a pixel aside
+   has its own pixels in the ring. With a weak SIFT pose, it must also match the frame better than that
+   pose. The best refined placement that passes (all but the
    edge check) is refined in the fine steps and kept if it then passes every check (else the next one).
 
 With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
@@ -282,7 +287,7 @@ def search_plane(
     background = np.bincount(bins[~found_mask], minlength=N_BINS) / max(int((~found_mask).sum()), 1)
     odds = np.log((target.hist + 1e-3) / (background + 1e-3)).clip(-3, 3).astype(np.float32)[bins]
     odds[found_mask] = 0.0  # explained by the objects found there
-    edges = _edge_credit(rgb, found_mask) if conf.edge_weight > 0 or conf.min_edge > 0 else None
+    edges = _edge_credit(rgb, found_mask) if conf.edge_weight or conf.min_edge or conf.edge_confirms else None
 
     def judge_around(poses: list[np.ndarray]) -> tuple[_Judge, float]:
         """A judge rendering a square that holds the object at any of ``poses``, and the incumbent's score."""
@@ -294,15 +299,16 @@ def search_plane(
     def passes(score: float, p: Placed | None, floor: float, final: bool = True) -> bool:
         """The checks; the edge score only on a ``final`` (finely refined) placement: a centimetre off, the
         coarse steps' placements can miss the outline they find."""
-        return (
-            p is not None
-            and score > floor
-            and p.visible >= conf.min_visible
-            and p.colour >= conf.min_colour
-            and p.match >= conf.min_match
-            and p.contrast >= conf.min_contrast
-            and not (final and p.edge < conf.min_edge)  # NaN: no edges to check with
-        )
+        if p is None or score <= floor or p.visible < conf.min_visible or p.match < conf.min_match:
+            return False
+        if final and p.edge < conf.min_edge:  # NaN: no edges to check with
+            return False
+        cues = (p.colour >= conf.min_colour) + (p.contrast >= conf.min_contrast)
+        if cues == 2:
+            return True
+        # Edges that follow the outline closely stand in for one of the two colour cues; the coarse steps'
+        # placements a centimetre off may miss the outline, so they go on to the fine steps.
+        return cues == 1 and conf.edge_confirms > 0 and (not final or p.edge >= conf.edge_confirms)
 
     if previous is not None:
         judge, floor = judge_around([previous])
@@ -355,6 +361,10 @@ def _places(
     stands out from the ring around it (:func:`_kernels`)."""
     h, w = odds.shape[0] // LEVEL, odds.shape[1] // LEVEL
     small = cv2.resize(odds, (w, h), interpolation=cv2.INTER_AREA)
+    # A silhouette partly out of the frame is scored as if the frame went on as it mostly is (its median
+    # odds): near the border the kernels reach past it, and neutral odds there would favour placements that
+    # hang out of the frame over the frame's background.
+    outside, inside = float(np.median(small)), np.ones_like(small)
     Ks = K.copy()
     Ks[:2] /= LEVEL
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
@@ -379,11 +389,13 @@ def _places(
                 mask, ring, c = _kernels(R, target, Ks, z_k)
                 band = ok & (np.abs(np.log(z / z_k)) <= 0.5 * np.log(SIZE_STEP))
                 if band.any() and mask.shape[0] < h and mask.shape[1] < w:
-                    S = cv2.matchTemplate(small, mask, cv2.TM_CCORR)
-                    S = np.stack([S, S - cv2.matchTemplate(small, ring, cv2.TM_CCORR)])
-                    full = np.full((2, h, w), -np.inf, np.float32)
-                    full[:, c[1] : c[1] + S.shape[1], c[0] : c[0] + S.shape[2]] = S
-                    best = np.where(band, np.maximum(best, full), best)
+                    padded = cv2.copyMakeBorder(small, c[1], c[1], c[0], c[0], cv2.BORDER_CONSTANT, value=outside)
+                    S = cv2.matchTemplate(padded, mask, cv2.TM_CCORR)
+                    S = np.stack([S, S - cv2.matchTemplate(padded, ring, cv2.TM_CCORR)])
+                    # As the judge: too little of the silhouette in the frame to tell.
+                    frame = cv2.copyMakeBorder(inside, c[1], c[1], c[0], c[0], cv2.BORDER_CONSTANT, value=0.0)
+                    S[:, cv2.matchTemplate(frame, mask, cv2.TM_CCORR) < conf.min_visible * mask.sum()] = -np.inf
+                    best = np.where(band, np.maximum(best, S), best)
                 z_k *= SIZE_STEP
 
             def pose_at(y: int, x: int, R=R, z=z) -> np.ndarray:

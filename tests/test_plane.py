@@ -89,6 +89,8 @@ def test_plane_config_is_checked():
         load_estimator_config({"plane": {"min_objects": 1}})
     with pytest.raises(ConfigError, match=r"plane.min_edge must be in \[0, 1\], got 1.5"):
         load_estimator_config({"plane": {"min_edge": 1.5}})
+    with pytest.raises(ConfigError, match=r"plane.edge_confirms must be in \[0, 1\], got -0.1"):
+        load_estimator_config({"plane": {"edge_confirms": -0.1}})
     with pytest.raises(ConfigError, match=r"verify_below must be in \[0, 1\], got 1.5"):
         load_estimator_config({"verify_below": 1.5})
     with pytest.raises(ConfigError, match=r"unknown key.*plane"):
@@ -214,6 +216,28 @@ def test_plane_search_keeps_no_placement_its_edges_do_not_follow(cracker_model, 
     assert rec.status == "too_few_matches" and rec.cam_from_model is None
 
 
+@pytest.mark.parametrize(
+    "checks, found",
+    [
+        ({"min_colour": 10.0}, True),  # colour fails, the contrast and the edges pass
+        ({"min_contrast": 10.0}, True),  # contrast fails
+        ({"min_colour": 10.0, "min_contrast": 10.0}, False),  # edges stand in for one colour cue, not both
+        ({"min_colour": 10.0, "edge_confirms": 0.99}, False),  # the edges are not close enough for that
+    ],
+)
+def test_edges_stand_in_for_one_failed_colour_check(cracker_model, cracker_library, checks, found):
+    """``plane.edge_confirms``: a placement whose outline the frame's edges follow closely is kept although its
+    colours fail one of the two colour checks (a pale bottle on a white table); without it, it is not."""
+    from tests.test_depth import _adds_mm
+
+    rec, T = _plane_search(cracker_model, cracker_library, True, plane={"edge_confirms": 0.75} | checks)
+    assert rec.ok == found
+    if found:
+        assert _adds_mm(cracker_model, rec.cam_from_model, T) < 10
+        off, _ = _plane_search(cracker_model, cracker_library, True, plane=checks | {"edge_confirms": 0.0})
+        assert not off.ok
+
+
 def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracker_library, monkeypatch, caplog):
     """An unexpected error in the optional stage is a warning; the records stay as the estimate made them."""
     import batchpose.estimate
@@ -324,3 +348,23 @@ def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch
     near = [np.linalg.norm(F[:3, 3] - T[:3, 3]) for F in found]
     assert min(near) < 0.2 * target.diameter_m, sorted(near)[:4]  # by colours held alone: 9 cm off at best
     assert sum(d > target.diameter_m for d in near) >= 8  # the patch keeps its candidates too
+
+
+def test_the_coarse_search_reaches_an_object_near_the_frames_border():
+    """A marker lying crosswise 20 px above the frame's bottom edge (rows 442-461): a square kernel as wide as
+    the marker is long reaches past the frame there, yet the search must offer a placement at the marker."""
+    from batchpose.plane import Plane, Target, _places
+
+    marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
+    hull = np.asarray(marker.convex_hull.vertices)
+    target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(stable_faces(marker), 0.02)), np.zeros(1))
+    normal = CAM_FROM_WORLD[:3, 2]
+    plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
+    T = _on_table(marker, 0.0, 0.3, 0)
+    odds = np.full((480, 640), -0.5, np.float32)  # the table
+    p = (hull @ T[:3, :3].T + T[:3, 3]) @ K_SYN.T
+    cv2.fillConvexPoly(odds, cv2.convexHull(np.round(p[:, :2] / p[:, 2:]).astype(np.int32)), 2.0)
+    assert 440 <= (p[:, 1] / p[:, 2]).min() and (p[:, 1] / p[:, 2]).max() < 470
+    found = _places(odds, K_SYN, plane, target, 16, PlaneConfig())
+    near = [np.linalg.norm(F[:3, 3] - T[:3, 3]) for F in found]
+    assert min(near) < 0.1 * target.diameter_m, sorted(near)[:4]  # kernels kept inside the frame: 8 cm off
