@@ -42,8 +42,8 @@ object standing on it at a given pixel is at one distance only. For such an obje
    whose edge score reaches ``edge_confirms`` may fail one of the two colour checks (``min_colour``,
    ``min_contrast``): a pale bottle on a white table has the table's colours, a thin marker a pixel aside
    has its own pixels in the ring. With a weak SIFT pose, it must also match the frame better than that
-   pose. The best refined placement that passes (all but the
-   edge check) is refined in the fine steps and kept if it then passes every check (else the next one).
+   pose. The best refined placement that passes all but the edge checks (with ``edge_confirms``, one colour
+   check may fail too) is refined in the fine steps and kept if it then passes every check (else the next).
 
 With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
 and searches only when that no longer passes. reports/ACCURACY.md ("Session 10", "Session 11") has the
