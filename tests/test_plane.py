@@ -329,21 +329,31 @@ def test_a_weak_pose_the_frame_barely_shows_is_not_kept(cracker_model, cracker_l
     ), weak.reason
 
 
-def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch_of_its_colours():
-    """A broad patch of the object's colours nearer the camera (a shadow, a cloth) holds more of them than the
-    thin object itself does: the coarse search must still offer a placement where the object stands out."""
-    from batchpose.plane import Plane, Target, _places
+def _marker_on_table(x: float, y: float, turn_deg: float):
+    """A thin box (a marker) lying on the table at (x, y), turned: the plane search's target and plane, its
+    pose, its pixels' (N, 2) hull corners, and a colour log-odds map with the table at -0.5 and it at 2."""
+    from batchpose.plane import Plane, Target
 
     marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
     hull = np.asarray(marker.convex_hull.vertices)
     target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(stable_faces(marker), 0.02)), np.zeros(1))
     normal = CAM_FROM_WORLD[:3, 2]
     plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
-    T = _on_table(marker, 0.1, 0.1, 30)  # ~115 x 15 px, rows 292-357
-    odds = np.full((480, 640), -0.5, np.float32)  # the table
-    odds[370:, 60:580] = 2.0  # the patch
+    T = _on_table(marker, x, y, turn_deg)
     p = (hull @ T[:3, :3].T + T[:3, 3]) @ K_SYN.T
-    cv2.fillConvexPoly(odds, cv2.convexHull(np.round(p[:, :2] / p[:, 2:]).astype(np.int32)), 2.0)
+    px = p[:, :2] / p[:, 2:]
+    odds = np.full((480, 640), -0.5, np.float32)
+    cv2.fillConvexPoly(odds, cv2.convexHull(np.round(px).astype(np.int32)), 2.0)
+    return target, plane, T, px, odds
+
+
+def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch_of_its_colours():
+    """A broad patch of the object's colours nearer the camera (a shadow, a cloth) holds more of them than the
+    thin object itself does: the coarse search must still offer a placement where the object stands out."""
+    from batchpose.plane import _places
+
+    target, plane, T, _, odds = _marker_on_table(0.1, 0.1, 30)  # ~115 x 15 px, rows 292-357
+    odds[370:, 60:580] = 2.0  # the patch
     found = _places(odds, K_SYN, plane, target, 16, PlaneConfig())
     near = [np.linalg.norm(F[:3, 3] - T[:3, 3]) for F in found]
     assert min(near) < 0.2 * target.diameter_m, sorted(near)[:4]  # by colours held alone: 9 cm off at best
@@ -353,18 +363,10 @@ def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch
 def test_the_coarse_search_reaches_an_object_near_the_frames_border():
     """A marker lying crosswise 20 px above the frame's bottom edge (rows 442-461): a square kernel as wide as
     the marker is long reaches past the frame there, yet the search must offer a placement at the marker."""
-    from batchpose.plane import Plane, Target, _places
+    from batchpose.plane import _places
 
-    marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
-    hull = np.asarray(marker.convex_hull.vertices)
-    target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(stable_faces(marker), 0.02)), np.zeros(1))
-    normal = CAM_FROM_WORLD[:3, 2]
-    plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
-    T = _on_table(marker, 0.0, 0.3, 0)
-    odds = np.full((480, 640), -0.5, np.float32)  # the table
-    p = (hull @ T[:3, :3].T + T[:3, 3]) @ K_SYN.T
-    cv2.fillConvexPoly(odds, cv2.convexHull(np.round(p[:, :2] / p[:, 2:]).astype(np.int32)), 2.0)
-    assert 440 <= (p[:, 1] / p[:, 2]).min() and (p[:, 1] / p[:, 2]).max() < 470
+    target, plane, T, px, odds = _marker_on_table(0.0, 0.3, 0)
+    assert 440 <= px[:, 1].min() and px[:, 1].max() < 470
     found = _places(odds, K_SYN, plane, target, 16, PlaneConfig())
     near = [np.linalg.norm(F[:3, 3] - T[:3, 3]) for F in found]
     assert min(near) < 0.1 * target.diameter_m, sorted(near)[:4]  # kernels kept inside the frame: 8 cm off
