@@ -483,6 +483,10 @@ class PlaneConfig:
     truth (0.67-0.97) and of absent objects' placements (90 % under 0.41); with the border fix of session 28,
     tabletop seeds 0-7 replayed: right 39 -> 52, wrong 4 -> 1, absent objects placed 2 -> 2 (reports/ACCURACY.md,
     "Session 28")."""
+    reface: bool = False
+    """Also refine, from each coarsely refined start, the best of the object's other resting faces at the
+    same place with its long axis kept (a bottle lying on its other side, a box on its back): the silhouette
+    barely differs, the texture does."""
 
 
 @dataclass(frozen=True)

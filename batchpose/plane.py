@@ -28,6 +28,9 @@ object standing on it at a given pixel is at one distance only. For such an obje
    matches the frame better, over the silhouette pixels no found object hides or covers (those behind it
    are the found object's texture): texture correlation in Lab plus ``colour_weight`` x mean colour
    log-odds plus ``edge_weight`` x the edge score (in 15 and 8 degree steps; the best then in 4 and 2).
+   With ``reface``, the object on its other resting faces at each refined start's place (long axis kept)
+   is judged, and the two best are refined too: a bottle on its left side and on its right barely differ
+   in silhouette.
    The edge score is how closely the frame's edges (Canny) follow the silhouette's outline: the mean over
    its outline pixels of exp(-d² / 2 EDGE_PX²), d the distance to the nearest frame edge, leaving out the
    outline along found objects (their own outline is an edge). It peaks sharply at the right place, where
@@ -94,6 +97,8 @@ EDGE_CLEAR_PX = 2
 #: An edge score needs at least this many outline pixels left (fewer: 0), and this many frame edge pixels in
 #: the judged square (fewer: NaN, the frame says nothing there).
 EDGE_MIN_PIXELS = 10
+#: With ``plane.reface``, the best this many of a start's other resting faces are refined.
+REFACED = 2
 #: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
 #: is refined with the coarse ones, the best of them then with the fine ones.
 COARSE_STEPS = ((15.0, 0.05), (8.0, 0.025))
@@ -327,6 +332,18 @@ def search_plane(
     # Refined, a wrong placement can match the frame's texture better than the right one yet not stand out
     # from its surroundings: the best of those that pass the checks goes on.
     refined = [_refine(places[k], plane, target, judge, COARSE_STEPS) for k in starts]
+    if conf.reface:
+        # A silhouette barely tells a bottle lying on its left side from one on its right: the texture does.
+        # At each refined start's place, the REFACED best of its other resting faces (long axis kept) are
+        # refined too.
+        for _, p in list(refined):
+            if p is None:
+                continue
+            ranked = []  # turned more than 30 degrees from the start and from one another, best first
+            for T in sorted(_refaced(p.cam_from_model, plane, target), key=lambda T: -judge(T)[0]):
+                if all(_turn_deg(T, U) > 30.0 for U in [p.cam_from_model, *ranked]):
+                    ranked.append(T)
+            refined += [_refine(T, plane, target, judge, COARSE_STEPS) for T in ranked[:REFACED]]
     refined = sorted((r for r in refined if passes(*r, floor, final=False)), key=lambda r: -r[0])
     for start in refined:
         best = _refine(start[1].cam_from_model, plane, target, judge, FINE_STEPS)
@@ -434,6 +451,44 @@ def _places(
     return distinct + [T for _, turns in spots for T in turns]
 
 
+def _refaced(T: np.ndarray, plane: Plane, target: Target) -> list[np.ndarray]:
+    """The object at T's place (its centre's viewing ray, resting on the plane) on each of its resting faces,
+    its long axis along T's either way (a face it stands up on: T's turn and three quarter turns more)."""
+    n = plane.normal
+    axis = _long_axis(target)
+    ray = _centre(T, target) / _centre(T, target)[2]
+
+    def flat(v: np.ndarray) -> np.ndarray:
+        return v - (v @ n) * n
+
+    want = flat(T[:3, :3] @ axis)
+    out = []
+    for face in target.faces:
+        R0, _ = resting(face, n, 0.0, target.hull, target.centre)
+        have = flat(R0 @ axis)
+        if np.linalg.norm(have) > 0.3 and np.linalg.norm(want) > 0.3:
+            base = np.arctan2(np.cross(have, want) @ n, have @ want)
+            angles = [base, base + np.pi]
+        else:
+            ref = flat(T[:3, :3] @ np.eye(3)[int(np.argmin(np.abs(axis)))])
+            have = flat(R0 @ np.eye(3)[int(np.argmin(np.abs(axis)))])
+            base = np.arctan2(np.cross(have, ref) @ n, have @ ref) if np.linalg.norm(have) > 1e-6 else 0.0
+            angles = [base + k * np.pi / 2 for k in range(4)]
+        for angle in angles:
+            R, height = resting(face, n, angle, target.hull, target.centre)
+            U = np.eye(4)
+            U[:3, :3] = R
+            U[:3, 3] = ray * (plane.offset + height) / float(ray @ n) - R @ target.centre
+            out.append(U)
+    return out
+
+
+def _long_axis(target: Target) -> np.ndarray:
+    """The direction (model frame) along which the object is longest: its hull's first principal axis."""
+    v = target.hull - target.hull.mean(axis=0)
+    return np.linalg.svd(v, full_matrices=False)[2][0]
+
+
 def _centre(T: np.ndarray, target: Target) -> np.ndarray:
     return T[:3, :3] @ target.centre + T[:3, 3]
 
@@ -461,10 +516,15 @@ def _spread(chosen: list[int], ranked, poses: list[np.ndarray], target: Target, 
     return out
 
 
+def _turn_deg(A: np.ndarray, B: np.ndarray) -> float:
+    """The angle (degrees) between poses A's and B's rotations."""
+    return float(np.rad2deg(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1))))
+
+
 def _near(A: np.ndarray, B: np.ndarray, target: Target) -> bool:
     """Same place (centres within 0.2 diameter) and nearly the same turn (within 20 degrees)."""
-    turn = np.rad2deg(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1)))
-    return np.linalg.norm(_centre(A, target) - _centre(B, target)) < 0.2 * target.diameter_m and turn < 20.0
+    near = np.linalg.norm(_centre(A, target) - _centre(B, target)) < 0.2 * target.diameter_m
+    return bool(near and _turn_deg(A, B) < 20.0)
 
 
 def _kernels(R: np.ndarray, target: Target, Ks: np.ndarray, z: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:

@@ -370,3 +370,33 @@ def test_the_coarse_search_reaches_an_object_near_the_frames_border():
     found = _places(odds, K_SYN, plane, target, 16, PlaneConfig())
     near = [np.linalg.norm(F[:3, 3] - T[:3, 3]) for F in found]
     assert min(near) < 0.1 * target.diameter_m, sorted(near)[:4]  # kernels kept inside the frame: 8 cm off
+
+
+@pytest.mark.parametrize("rest", [0, 1, 2])
+def test_refacing_offers_the_object_on_its_other_faces_at_the_same_place(cracker_model, rest):
+    """A box placed on the wrong face (its silhouette barely differs): among its refaced poses is the box on
+    the face it lies on, turned as it lies (long axis along the placement's, one way or the other), resting on
+    the plane where the placement was in the image (its centre on the same viewing ray)."""
+    from batchpose.plane import Plane, Target, _refaced
+
+    mesh = cracker_model.mesh
+    hull = np.asarray(mesh.convex_hull.vertices)
+    centre = np.asarray(mesh.bounding_box.centroid)
+    faces = tuple(resting_faces(stable_faces(mesh), 0.02))
+    target = Target(hull, centre, cracker_model.diameter_m, faces, np.zeros(1))
+    normal = CAM_FROM_WORLD[:3, 2]
+    plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
+    truth = _on_table(mesh, 0.05, 0.02, 40, rest=rest)
+    wrong = _on_table(mesh, 0.05, 0.02, 40, rest=(rest + 1) % 3)
+    offered = _refaced(wrong, plane, target)
+    assert len(offered) >= 2 * len(faces)
+    best = min(offered, key=lambda T: _turn(T, truth))
+    assert _turn(best, truth) < 3.0
+    for T in offered:
+        assert abs((hull @ T[:3, :3].T + T[:3, 3]).dot(normal).min() - plane.offset) < 1e-6  # resting on it
+        c, w = T[:3, :3] @ centre + T[:3, 3], wrong[:3, :3] @ centre + wrong[:3, 3]
+        assert np.allclose(c / c[2], w / w[2])  # where the placement was in the image
+
+
+def _turn(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1))))
