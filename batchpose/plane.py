@@ -456,23 +456,28 @@ def _refaced(T: np.ndarray, plane: Plane, target: Target) -> list[np.ndarray]:
     its long axis along T's either way (a face it stands up on: T's turn and three quarter turns more)."""
     n = plane.normal
     axis = _long_axis(target)
-    ray = _centre(T, target) / _centre(T, target)[2]
+    across = np.eye(3)[int(np.argmin(np.abs(axis)))]  # a model axis well off the long one
+    c = _centre(T, target)
+    ray = c / c[2]
 
     def flat(v: np.ndarray) -> np.ndarray:
         return v - (v @ n) * n
 
+    def turn(have: np.ndarray, want: np.ndarray) -> float:
+        """The turn about n taking ``have`` to ``want`` (both in the plane)."""
+        return float(np.arctan2(np.cross(have, want) @ n, have @ want))
+
     want = flat(T[:3, :3] @ axis)
     out = []
     for face in target.faces:
-        R0, _ = resting(face, n, 0.0, target.hull, target.centre)
+        R0 = _turn_to(face, -n)  # the face down, not yet turned (as :func:`resting` with angle 0)
         have = flat(R0 @ axis)
         if np.linalg.norm(have) > 0.3 and np.linalg.norm(want) > 0.3:
-            base = np.arctan2(np.cross(have, want) @ n, have @ want)
+            base = turn(have, want)
             angles = [base, base + np.pi]
         else:
-            ref = flat(T[:3, :3] @ np.eye(3)[int(np.argmin(np.abs(axis)))])
-            have = flat(R0 @ np.eye(3)[int(np.argmin(np.abs(axis)))])
-            base = np.arctan2(np.cross(have, ref) @ n, have @ ref) if np.linalg.norm(have) > 1e-6 else 0.0
+            have = flat(R0 @ across)
+            base = turn(have, flat(T[:3, :3] @ across)) if np.linalg.norm(have) > 1e-6 else 0.0
             angles = [base + k * np.pi / 2 for k in range(4)]
         for angle in angles:
             R, height = resting(face, n, angle, target.hull, target.centre)

@@ -332,19 +332,25 @@ def test_a_weak_pose_the_frame_barely_shows_is_not_kept(cracker_model, cracker_l
 def _marker_on_table(x: float, y: float, turn_deg: float):
     """A thin box (a marker) lying on the table at (x, y), turned: the plane search's target and plane, its
     pose, its pixels' (N, 2) hull corners, and a colour log-odds map with the table at -0.5 and it at 2."""
-    from batchpose.plane import Plane, Target
+    from batchpose.plane import Target
 
     marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
     hull = np.asarray(marker.convex_hull.vertices)
     target = Target(hull, np.zeros(3), 0.121, tuple(resting_faces(stable_faces(marker), 0.02)), np.zeros(1))
-    normal = CAM_FROM_WORLD[:3, 2]
-    plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
     T = _on_table(marker, x, y, turn_deg)
     p = (hull @ T[:3, :3].T + T[:3, 3]) @ K_SYN.T
     px = p[:, :2] / p[:, 2:]
     odds = np.full((480, 640), -0.5, np.float32)
     cv2.fillConvexPoly(odds, cv2.convexHull(np.round(px).astype(np.int32)), 2.0)
-    return target, plane, T, px, odds
+    return target, _table_plane(), T, px, odds
+
+
+def _table_plane():
+    """The table (world z = 0) as the plane search's support plane."""
+    from batchpose.plane import Plane
+
+    normal = CAM_FROM_WORLD[:3, 2]
+    return Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
 
 
 def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch_of_its_colours():
@@ -377,26 +383,21 @@ def test_refacing_offers_the_object_on_its_other_faces_at_the_same_place(cracker
     """A box placed on the wrong face (its silhouette barely differs): among its refaced poses is the box on
     the face it lies on, turned as it lies (long axis along the placement's, one way or the other), resting on
     the plane where the placement was in the image (its centre on the same viewing ray)."""
-    from batchpose.plane import Plane, Target, _refaced
+    from batchpose.plane import Target, _refaced, _turn_deg
 
     mesh = cracker_model.mesh
     hull = np.asarray(mesh.convex_hull.vertices)
     centre = np.asarray(mesh.bounding_box.centroid)
     faces = tuple(resting_faces(stable_faces(mesh), 0.02))
     target = Target(hull, centre, cracker_model.diameter_m, faces, np.zeros(1))
-    normal = CAM_FROM_WORLD[:3, 2]
-    plane = Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
+    plane = _table_plane()
     truth = _on_table(mesh, 0.05, 0.02, 40, rest=rest)
     wrong = _on_table(mesh, 0.05, 0.02, 40, rest=(rest + 1) % 3)
     offered = _refaced(wrong, plane, target)
     assert len(offered) >= 2 * len(faces)
-    best = min(offered, key=lambda T: _turn(T, truth))
-    assert _turn(best, truth) < 3.0
+    best = min(offered, key=lambda T: _turn_deg(T, truth))
+    assert _turn_deg(best, truth) < 3.0
     for T in offered:
-        assert abs((hull @ T[:3, :3].T + T[:3, 3]).dot(normal).min() - plane.offset) < 1e-6  # resting on it
+        assert abs((hull @ T[:3, :3].T + T[:3, 3]).dot(plane.normal).min() - plane.offset) < 1e-6  # resting on it
         c, w = T[:3, :3] @ centre + T[:3, 3], wrong[:3, :3] @ centre + wrong[:3, 3]
         assert np.allclose(c / c[2], w / w[2])  # where the placement was in the image
-
-
-def _turn(A: np.ndarray, B: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ B[:3, :3]) - 1) / 2, -1, 1))))
