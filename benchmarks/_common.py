@@ -20,6 +20,8 @@ from pathlib import Path
 
 import psutil
 
+from batchpose import run as run_mod
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 MB = 1024 * 1024
@@ -32,8 +34,12 @@ def default_manifest() -> Path:
     return REPO / "data_manifest" / "demo.yaml"
 
 
+# The libraries whose versions move the figures (pyproject.toml gives ranges, so a fresh set-up may differ).
+_LIBS = {"numpy": "numpy", "opencv-python-headless": "OpenCV", "scipy": "scipy", "trimesh": "trimesh"}
+
+
 def machine() -> str:
-    """One line: date, CPU model and count, memory, load, Python."""
+    """One line: date, CPU model and count, memory, load, Python and the versions of :data:`_LIBS`."""
     cpu = platform.processor() or platform.machine()
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -41,9 +47,12 @@ def machine() -> str:
                 cpu = line.split(":", 1)[1].strip()
                 break
     load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    found = run_mod.versions()
+    libs = ", ".join(f"{name} {found.get(pkg) or '-'}" for pkg, name in _LIBS.items())
     return (
         f"{_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} | {cpu} | {psutil.cpu_count()} logical cores | "
         f"{psutil.virtual_memory().total / 2**30:.0f} GiB RAM | load avg {load} | Python {platform.python_version()}"
+        f" | {libs}"
     )
 
 
