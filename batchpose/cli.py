@@ -75,7 +75,7 @@ def _cmd_score(args: argparse.Namespace) -> None:
     points, diameters = run.model_points(sorted(run.objects))
     obj_names = {int(v["obj_id"]): k for k, v in run.objects.items()}
     _, summary = bop.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames)
-    cols = [c for c in ("obj_name", "n", "adds_auc", "add_auc", "adds_recall", "add_recall") if c in summary]
+    cols = ["obj_name", "n", "adds_auc", "add_auc", "adds_recall_01d", "add_recall_01d"]
     print(summary[cols].to_string(index=False, float_format=lambda v: f"{v:.1f}"))
 
 

@@ -209,8 +209,12 @@ def test_help_lists_every_command():
 def test_score_command_scores_a_bop_csv(demo_run):
     r = _cli("score", str(demo_run / "poses.csv"), str(demo_run))
     assert r.returncode == 0, r.stderr
-    pooled = [ln for ln in r.stdout.splitlines() if ln.strip().startswith("pooled")][0].split()
+    lines = r.stdout.splitlines()
+    header = [ln for ln in lines if ln.strip().startswith("obj_name")][0].split()
+    assert header == ["obj_name", "n", "adds_auc", "add_auc", "adds_recall_01d", "add_recall_01d"]
+    pooled = [ln for ln in lines if ln.strip().startswith("pooled")][0].split()
     assert pooled[1] == "5" and float(pooled[2]) > 80  # n, ADD-S AUC
+    assert 80 <= float(pooled[4]) <= 100  # ADD-S recall at 0.1 d, %
 
 
 @pytest.mark.slow
