@@ -601,7 +601,8 @@ def main() -> int:
         target(
             s2 / s1 >= JOBS_SCALING,
             f"--jobs 2 / --jobs 1 throughput while busy: {s2 / s1:.2f}x "
-            f"(wall incl. worker start-up {fps2 / fps1:.2f}x; target >= {JOBS_SCALING}x)",
+            f"(wall incl. worker start-up {fps2 / fps1:.2f}x; target >= {JOBS_SCALING}x; two workers at the pinned "
+            f"--jobs 1 speed: {2 * s1c / s1:.2f}x on this host, where --jobs 1 keeps {cores1:.2f} cores busy)",
         )
     )
     print(target(worker_peak <= RSS_LIMIT, f"peak RSS per worker: {worker_peak / MB:.0f} MB (target <= 1536 MB)"))
