@@ -24,6 +24,31 @@ RAW_ENCODINGS = {
     "8UC3": (3, np.uint8),
     "mono16": (1, np.uint16),
     "16UC1": (1, np.uint16),
+    **{f"bayer_{p}8": (1, np.uint8) for p in ("rggb", "bggr", "gbrg", "grbg")},
+    **{f"bayer_{p}16": (1, np.uint16) for p in ("rggb", "bggr", "gbrg", "grbg")},
+    "uyvy": (2, np.uint8),
+    "yuv422": (2, np.uint8),
+    "yuyv": (2, np.uint8),
+    "yuv422_yuy2": (2, np.uint8),
+}
+#: Raw encodings OpenCV turns into RGB: colour-filter mosaics and packed 4:2:2 YUV (ROS and Foxglove names:
+#: ``yuv422`` is UYVY, ``yuv422_yuy2`` is YUYV). OpenCV names a Bayer pattern by the 2x2 block one pixel
+#: down and right of the corner, so ROS's ``rggb`` is OpenCV's ``BG``.
+_RAW_TO_RGB = {
+    **{
+        f"bayer_{p}{bits}": code
+        for p, code in (
+            ("rggb", cv2.COLOR_BayerBG2RGB),
+            ("bggr", cv2.COLOR_BayerRG2RGB),
+            ("gbrg", cv2.COLOR_BayerGR2RGB),
+            ("grbg", cv2.COLOR_BayerGB2RGB),
+        )
+        for bits in (8, 16)
+    },
+    "uyvy": cv2.COLOR_YUV2RGB_UYVY,
+    "yuv422": cv2.COLOR_YUV2RGB_UYVY,
+    "yuyv": cv2.COLOR_YUV2RGB_YUY2,
+    "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2,
 }
 COMPRESSED_FORMATS = ("png", "jpeg")
 #: Encodings of a depth image understood by :func:`decode_depth`: 16-bit PNG, or raw 16-bit / 32-bit float.
@@ -131,7 +156,8 @@ def decode_image(frame: Frame) -> np.ndarray:
     """Decode a frame's pixels.
 
     Returns:
-        (H, W, 3) uint8 RGB image (mono is replicated, 16-bit is scaled to 8-bit, alpha dropped).
+        (H, W, 3) uint8 RGB image (mono is replicated, 16-bit is scaled to 8-bit, alpha dropped, Bayer
+        mosaics are demosaiced and 4:2:2 YUV converted by OpenCV).
 
     Raises:
         ImageError: empty data, undecodable bytes, unsupported encoding or a size that disagrees with
@@ -174,7 +200,13 @@ def decode_image(frame: Frame) -> np.ndarray:
         if dtype == np.uint16:
             img = (img / 257).astype(np.uint8)
         enc = frame.image_format
-        if channels == 1:
+        if enc in _RAW_TO_RGB:
+            try:
+                rgb = cv2.cvtColor(img[:, :, 0] if channels == 1 else img, _RAW_TO_RGB[enc])
+            except cv2.error as e:  # e.g. 4:2:2 YUV of an odd width
+                msg = str(e).strip().splitlines()[-1]
+                raise ImageError(f"{where}: cannot convert the {enc} image of {w}x{h} to RGB ({msg})") from None
+        elif channels == 1:
             rgb = np.repeat(img, 3, axis=2)
         elif enc in ("bgr8", "bgra8"):
             rgb = np.ascontiguousarray(img[:, :, 2::-1])

@@ -1,12 +1,15 @@
-"""MCAP in and out: the only module that imports ``mcap`` (and its protobuf / ROS 2 support).
+"""MCAP in and out: the only module that imports ``mcap`` (and its protobuf / ROS 1 / ROS 2 support).
 
 Reading (:class:`McapFrameSource`): images from ``foxglove.CompressedImage`` (jpeg, png),
-``foxglove.RawImage`` (rgb8, bgr8, rgba8, bgra8, mono8, mono16), ``sensor_msgs/msg/Image`` and
-``sensor_msgs/msg/CompressedImage`` (ROS 2 cdr); calibration from ``foxglove.CameraCalibration`` or
-``sensor_msgs/msg/CameraInfo``; foxglove schemas in protobuf or in Foxglove's JSON encoding (bytes as
-base64, times as ``{sec, nsec}``). Each image uses the latest calibration logged at or before it (images
-logged before the first calibration use the first one, with a warning). Image bytes are never decoded
-here: ``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
+``foxglove.RawImage`` (the encodings of :data:`batchpose.frames.RAW_ENCODINGS`: rgb8, bgr8, rgba8, bgra8,
+mono8, mono16, Bayer mosaics, 4:2:2 YUV), ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage``
+(ROS 2 cdr) or ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` (ROS 1, as ``mcap convert`` writes
+a bag; big-endian 16-bit images are byte-swapped); calibration from ``foxglove.CameraCalibration``,
+``sensor_msgs/msg/CameraInfo`` or ``sensor_msgs/CameraInfo``; foxglove schemas in protobuf or in
+Foxglove's JSON encoding (bytes as base64, times as ``{sec, nsec}``). Each image uses the latest
+calibration logged at or before it (images logged before the first calibration use the first one, with a
+warning). Image bytes are never decoded here (a big-endian 16-bit image is only byte-swapped):
+``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
 stride. With a ``depth_topic``, each image gets the depth image (16UC1 / mono16 in mm, 32FC1 in m, or a
 16-bit PNG in mm) whose header stamp is nearest its own, within :data:`DEPTH_MAX_GAP_NS`. An image
 message that does not parse, or a raw image of another size than its calibration, is still a frame: one
@@ -79,6 +82,7 @@ from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 from mcap_protobuf.schema import register_schema
+from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
@@ -91,6 +95,11 @@ try:  # zstd is how chunks are usually compressed; its errors mean a corrupt chu
     from zstandard import ZstdError
 except ImportError:  # pragma: no cover - zstandard ships with mcap's recommended extras
     ZstdError = McapError  # type: ignore[assignment,misc]
+
+try:  # the ROS 1 decoder uses a ROS installation's genpy when there is one, else the copy it ships
+    from genpy.message import DeserializationError as _Ros1DecodeError
+except ImportError:
+    from mcap_ros1._vendor.genpy.message import DeserializationError as _Ros1DecodeError
 
 log = logging.getLogger("batchpose")
 
@@ -271,9 +280,9 @@ def _field(msg: Any, *names: str, default: Any = _MISSING) -> Any:
 
 def _stamp_ns(msg: Any) -> int:
     header = _field(msg, "header", default=None)
-    if header is not None:  # ROS 2: header.stamp.sec / nanosec
+    if header is not None:  # ROS 2: header.stamp.sec / nanosec; ROS 1: secs / nsecs
         st = _field(header, "stamp")
-        return int(_field(st, "sec")) * 1_000_000_000 + int(_field(st, "nanosec"))
+        return int(_field(st, "sec", "secs")) * 1_000_000_000 + int(_field(st, "nanosec", "nsecs"))
     ts = _field(msg, "timestamp")  # foxglove: google.protobuf.Timestamp; in JSON {sec, nsec}
     if isinstance(ts, Mapping):
         return int(ts.get("sec", 0)) * 1_000_000_000 + int(ts.get("nsec", 0))
@@ -311,8 +320,12 @@ def _to_image(msg: Any, kind: str) -> _Image:
     if kind == "compressed":
         fmt = _compressed_format(str(_field(msg, "format")))
         return _Image(fmt, data, 0, 0, 0, _frame_id_of(msg), _stamp_ns(msg), raw=False)
+    encoding = str(_field(msg, "encoding"))
+    spec = RAW_ENCODINGS.get(encoding)
+    if _field(msg, "is_bigendian", default=0) and spec is not None and np.dtype(spec[1]).itemsize > 1:
+        data = np.frombuffer(data[: len(data) // 2 * 2], dtype=">u2").astype("<u2").tobytes()  # as decode_image reads
     return _Image(
-        str(_field(msg, "encoding")),
+        encoding,
         data,
         int(_field(msg, "width")),
         int(_field(msg, "height")),
@@ -465,7 +478,7 @@ class McapFrameSource(FrameSource):
         self.calibration_topic = self._choose_calibration_topic(calibration_topic)
         self.gt_topic = GT_TOPIC if GT_TOPIC in self._topics() else None
         self._decoders: dict[int, Any] = {}
-        self._factories = (ProtobufDecoderFactory(), Ros2DecoderFactory())
+        self._factories = (ProtobufDecoderFactory(), Ros2DecoderFactory(), Ros1DecoderFactory())
         self._count: int | None = None
         self._warned: set[tuple[str, int]] = set()  # (topic, log time) of messages already warned about
         if self.truncated:
@@ -624,7 +637,8 @@ class McapFrameSource(FrameSource):
             listing = ", ".join(f"{t} ({s or 'no schema'})" for t, s in topics.items())
             raise DataError(
                 f"{self.path}: no image topic (expected messages with schema foxglove.CompressedImage, "
-                f"foxglove.RawImage, sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage; "
+                f"foxglove.RawImage, sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage (ROS 1: "
+                f"sensor_msgs/Image, sensor_msgs/CompressedImage); "
                 f"topics: {listing or 'none'})"
             )
         with_calib = [t for t in images if self._calibration_beside(t)]
@@ -657,7 +671,7 @@ class McapFrameSource(FrameSource):
                 ns = self.image_topic.rsplit("/", 1)[0] or "/"
                 raise CameraError(
                     f"{self.path}:{self.image_topic}: image topic has no calibration (expected a "
-                    f"foxglove.CameraCalibration or sensor_msgs/msg/CameraInfo topic under {ns}; "
+                    f"foxglove.CameraCalibration or sensor_msgs/(msg/)CameraInfo topic under {ns}; "
                     f"calibration topics elsewhere: {', '.join(others) or 'none'}; set calibration_topic)"
                 )
         if self._topic_count(topic) == 0:
@@ -750,7 +764,7 @@ class McapFrameSource(FrameSource):
         return {k: dict(v) for k, v in self._metadata.items()}
 
     def decode(self, schema: Schema | None, channel: Channel, message: Message) -> Any:
-        """Decode one message with its embedded schema (protobuf, ROS 2 cdr, or JSON).
+        """Decode one message with its embedded schema (protobuf, ROS 2 cdr, ROS 1, or JSON).
 
         Raises:
             DataError: no decoder for the encoding, or the bytes do not parse.
@@ -761,19 +775,25 @@ class McapFrameSource(FrameSource):
                 dec = json.loads
             else:
                 for factory in self._factories:
-                    dec = factory.decoder_for(channel.message_encoding, schema)
+                    try:
+                        dec = factory.decoder_for(channel.message_encoding, schema)
+                    except Exception as e:  # noqa: BLE001 - each factory's parser has its own errors for bad schema text
+                        raise DataError(
+                            f"{self.path}:{channel.topic}: cannot read its {channel.message_encoding} schema "
+                            f"{schema.name if schema else None!r} ({one_line(e)})"
+                        ) from None
                     if dec is not None:
                         break
             if dec is None:
                 raise DataError(
                     f"{self.path}:{channel.topic}: cannot decode message encoding "
                     f"{channel.message_encoding!r} with schema {schema.name if schema else None!r} "
-                    "(expected protobuf, cdr or json)"
+                    "(expected protobuf, cdr, ros1 or json)"
                 )
             self._decoders[channel.id] = dec
         try:
             return dec(message.data)
-        except (DecodeError, McapError, ValueError, IndexError, TypeError, struct.error) as e:
+        except (DecodeError, McapError, ValueError, IndexError, TypeError, struct.error, _Ros1DecodeError) as e:
             raise _BadMessage(
                 f"{self.path}:{channel.topic}: cannot decode message at log time {message.log_time} ({one_line(e)})"
             ) from None

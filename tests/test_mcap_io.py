@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import hashlib
+import importlib
 import io
 import json
 import logging
@@ -24,6 +25,8 @@ from mcap.stream_reader import breakup_chunk
 from mcap.writer import CompressionType, IndexType, Writer
 from mcap_protobuf.decoder import DecoderFactory
 from mcap_protobuf.schema import register_schema
+from mcap_ros1.decoder import dynamic as ros1_dynamic
+from mcap_ros1.writer import Writer as Ros1Writer
 from mcap_ros2.writer import Writer as Ros2Writer
 from PIL import Image
 from scipy.spatial.transform import Rotation
@@ -353,6 +356,160 @@ def test_ros2_compressed_image(tmp_path):
     np.testing.assert_array_equal(fr.camera.K, K1)
 
 
+ROS1_DEPS = """================================================================================
+MSG: std_msgs/Header
+uint32 seq
+time stamp
+string frame_id
+"""
+ROS1_IMAGE = (
+    "Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n"
+)
+ROS1_CAMERA_INFO = """Header header
+uint32 height
+uint32 width
+string distortion_model
+float64[] D
+float64[9] K
+float64[9] R
+float64[12] P
+uint32 binning_x
+uint32 binning_y
+RegionOfInterest roi
+================================================================================
+MSG: sensor_msgs/RegionOfInterest
+uint32 x_offset
+uint32 y_offset
+uint32 height
+uint32 width
+bool do_rectify
+"""
+#: ROS 1 message classes generated from their definitions, as ``mcap convert`` of a bag stores them.
+ROS1 = {
+    name: cls
+    for name, text in (
+        ("sensor_msgs/Image", ROS1_IMAGE),
+        ("sensor_msgs/CompressedImage", "Header header\nstring format\nuint8[] data\n"),
+        ("sensor_msgs/CameraInfo", ROS1_CAMERA_INFO),
+    )
+    for name, cls in ros1_dynamic.generate_dynamic(name, text + ROS1_DEPS).items()
+}
+ros1_genpy = importlib.import_module(ros1_dynamic.__package__)  # genpy: Time
+
+
+def ros1_header(t: int, seq: int = 0):
+    stamp = ros1_genpy.Time(t // 1_000_000_000, t % 1_000_000_000)
+    return ROS1["std_msgs/Header"](seq=seq, stamp=stamp, frame_id="cam")
+
+
+def ros1_camera_info(t: int, K: np.ndarray = K1, w: int = W, h: int = H, dist=(0.1, -0.05, 0.001, 0.002, 0.01)):
+    return ROS1["sensor_msgs/CameraInfo"](
+        header=ros1_header(t),
+        height=h,
+        width=w,
+        distortion_model="plumb_bob",
+        D=list(dist),
+        K=K.reshape(-1).tolist(),
+        R=np.eye(3).reshape(-1).tolist(),
+        P=np.hstack([K, np.zeros((3, 1))]).reshape(-1).tolist(),
+    )
+
+
+def test_ros1_image_compressed_image_and_camera_info(tmp_path):
+    # A ROS 1 bag converted to MCAP (`mcap convert`): ros1msg schemas, uppercase CameraInfo fields,
+    # stamps in secs / nsecs, a Bayer camera and a big-endian 16-bit one.
+    rng = np.random.default_rng(21)
+    rgb = cv2.resize(rng.integers(0, 256, (3, 4, 3), np.uint8), (W, H), interpolation=cv2.INTER_CUBIC)
+    mono = rng.integers(0, 65535, (H, W), dtype=np.uint16)
+    jpg = _enc(_img(rng), ".jpg")
+    path = tmp_path / "ros1.mcap"
+    with Ros1Writer(str(path)) as w:
+        for i in range(3):
+            t = T0 + i * DT
+            w.write_message("/camera/camera_info", ros1_camera_info(t), log_time=t)
+            w.write_message(
+                "/camera/compressed",
+                ROS1["sensor_msgs/CompressedImage"](header=ros1_header(t), format="jpeg", data=jpg),
+                log_time=t,
+            )
+            w.write_message(
+                "/camera/image_raw",
+                ROS1["sensor_msgs/Image"](
+                    header=ros1_header(t + 7, seq=i),
+                    height=H,
+                    width=W,
+                    encoding="bayer_rggb8",
+                    is_bigendian=0,
+                    step=W,
+                    data=_mosaic(rgb, "rggb").tobytes(),
+                ),
+                log_time=t + 1000,
+            )
+            w.write_message(
+                "/ir/image_raw",
+                ROS1["sensor_msgs/Image"](
+                    header=ros1_header(t),
+                    height=H,
+                    width=W,
+                    encoding="mono16",
+                    is_bigendian=1,
+                    step=W * 2,
+                    data=mono.astype(">u2").tobytes(),
+                ),
+                log_time=t,
+            )
+    src = McapFrameSource(path, image_topic="/camera/image_raw")
+    assert (src.calibration_topic, src.count()) == ("/camera/camera_info", 3)
+    frames = list(src)
+    assert [f.stamp_ns for f in frames] == [T0 + i * DT + 1000 for i in range(3)]
+    for fr in frames:
+        assert (fr.image_format, fr.raw_step, fr.camera.width, fr.camera.height) == ("bayer_rggb8", W, W, H)
+        np.testing.assert_array_equal(fr.camera.K, K1)
+        np.testing.assert_array_equal(fr.camera.dist, [0.1, -0.05, 0.001, 0.002, 0.01])
+        assert np.abs(decode_image(fr).astype(int) - rgb)[2:-2, 2:-2].mean() < 3
+    (c,) = list(McapFrameSource(path, image_topic="/camera/compressed"))[:1]
+    np.testing.assert_array_equal(
+        decode_image(c), cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+    )
+    (ir, *_) = McapFrameSource(path, image_topic="/ir/image_raw", calibration_topic="/camera/camera_info")
+    np.testing.assert_array_equal(decode_image(ir)[:, :, 0], (mono / 257).astype(np.uint8))
+
+
+def ros1_record(topic: str, msg, t: int) -> tuple[str, str, bytes, bytes, int]:
+    """One message of :func:`ros1_log`: topic, type, definition, serialized bytes, log time."""
+    buf = io.BytesIO()
+    msg.serialize(buf)
+    return topic, msg._type, msg._full_text.encode(), buf.getvalue(), t
+
+
+def ros1_log(path: Path, records: list[tuple[str, str, bytes, bytes, int]]) -> None:
+    """A log laid out as `mcap convert` writes a ROS 1 bag, from :func:`ros1_record` tuples (any bytes)."""
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="ros1", library="test")
+        channels = {}
+        for topic, type_, definition, data, t in records:
+            if topic not in channels:
+                channels[topic] = w.register_channel(topic, "ros1", w.register_schema(type_, "ros1msg", definition))
+            w.add_message(channels[topic], log_time=t, data=data, publish_time=t)
+        w.finish()
+
+
+def test_ros1_image_message_cut_short_fails_only_its_frame(tmp_path):
+    img = ROS1["sensor_msgs/Image"](
+        header=ros1_header(T0), height=H, width=W, encoding="mono8", is_bigendian=0, step=W, data=bytes(W * H)
+    )
+    records = []
+    for t in (T0, T0 + DT):
+        records += [ros1_record("/cam/camera_info", ros1_camera_info(t), t), ros1_record("/cam/image", img, t)]
+    records[-1] = records[-1][:3] + (records[-1][3][:10], T0 + DT)  # the second image stops inside its header
+    ros1_log(tmp_path / "ros1bad.mcap", records)
+    a, b = McapFrameSource(tmp_path / "ros1bad.mcap")
+    assert a.error is None and decode_image(a).shape == (H, W, 3)
+    with pytest.raises(ImageError, match=rf"ros1bad.mcap:/cam/image: cannot decode message at log time {T0 + DT} "):
+        decode_image(b)
+
+
 @pytest.mark.parametrize("encoding", ["rgb8", "bgra8", "mono8", "mono16"])
 def test_foxglove_raw_image_encodings(tmp_path, encoding):
     rng = np.random.default_rng(4)
@@ -373,6 +530,59 @@ def test_foxglove_raw_image_encodings(tmp_path, encoding):
     else:
         expected = np.repeat((px / 257).astype(np.uint8) if dtype == np.uint16 else px, 3, axis=2)
     np.testing.assert_array_equal(rgb, expected)
+
+
+def _mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
+    """What a colour-filter camera records: one channel a pixel, in ``pattern``'s 2x2 layout."""
+    out = np.empty(rgb.shape[:2], rgb.dtype)
+    for (dy, dx), c in zip([(0, 0), (0, 1), (1, 0), (1, 1)], pattern, strict=True):
+        out[dy::2, dx::2] = rgb[dy::2, dx::2, "rgb".index(c)]
+    return out
+
+
+@pytest.mark.parametrize(
+    "encoding", ["bayer_rggb8", "bayer_bggr8", "bayer_gbrg8", "bayer_grbg8", "bayer_rggb16", "uyvy", "yuv422_yuy2"]
+)
+def test_camera_native_raw_encodings_come_out_as_the_scenes_colours(tmp_path, encoding):
+    # A colour-filter mosaic or packed 4:2:2 YUV of a smooth image: what many robot cameras log.
+    rgb = cv2.resize(
+        np.random.default_rng(9).integers(0, 256, (3, 4, 3), np.uint8), (W, H), interpolation=cv2.INTER_CUBIC
+    )
+    if encoding.startswith("bayer_"):
+        px = _mosaic(rgb, encoding[6:10])
+        if encoding.endswith("16"):
+            px = px.astype(np.uint16) * 257
+    else:
+        px = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV_UYVY if encoding == "uyvy" else cv2.COLOR_RGB2YUV_YUY2)
+    log_ = Log(tmp_path / "raw.mcap")
+    log_.proto("/cam/calibration", _calib(T0), T0)
+    step = px.strides[0]
+    log_.proto(
+        "/cam/image", RawImage(frame_id="c", width=W, height=H, encoding=encoding, step=step, data=px.tobytes()), T0
+    )
+    log_.close()
+    (fr,) = McapFrameSource(tmp_path / "raw.mcap")
+    out = decode_image(fr).astype(int)
+    assert out.shape == (H, W, 3)
+    # Inside a 2-px border, where demosaicing has both neighbours: within a few levels of the scene.
+    err = np.abs(out - rgb)[2:-2, 2:-2]
+    assert err.mean() < 3 and np.percentile(err, 99) < 16, (err.mean(), np.percentile(err, 99))
+
+
+@pytest.mark.parametrize("encoding", ["yuv422", "yuyv"])
+def test_camera_native_raw_image_that_cannot_be_converted_fails_its_frame(tmp_path, encoding):
+    w = 5  # 4:2:2 YUV shares each U, V sample between two pixels: the width must be even
+    log_ = Log(tmp_path / "odd.mcap")
+    log_.proto("/cam/calibration", _calib(T0, w=w), T0)
+    log_.proto(
+        "/cam/image",
+        RawImage(frame_id="c", width=w, height=H, encoding=encoding, step=w * 2, data=bytes(w * 2 * H)),
+        T0,
+    )
+    log_.close()
+    (fr,) = McapFrameSource(tmp_path / "odd.mcap")
+    with pytest.raises(ImageError, match=f"cannot convert the {encoding} image of {w}x{H} to RGB"):
+        decode_image(fr)
 
 
 def test_calibration_pairing_and_changes(tmp_path, caplog):
@@ -681,8 +891,8 @@ def test_image_topic_with_non_image_schema(tmp_path):
     [
         (_cimg(T0, b"RIFF....WEBP", fmt="webp"), "unsupported image encoding 'webp'"),
         (
-            RawImage(width=W, height=H, encoding="yuv422", step=W * 2, data=bytes(W * H * 2)),
-            "unsupported image encoding 'yuv422'",
+            RawImage(width=W, height=H, encoding="nv21", step=W, data=bytes(W * H * 3 // 2)),
+            "unsupported image encoding 'nv21'",
         ),
         (_cimg(T0, b""), r"image is empty \(0 bytes\)"),
         (RawImage(width=0, height=H, encoding="rgb8", step=0, data=b""), r"image is empty \(0 bytes\)"),

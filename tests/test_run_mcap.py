@@ -4,15 +4,32 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from mcap.reader import make_reader
+from mcap.writer import Writer
 
 from batchpose import convert, run
 from tests.conftest import ROOT
-from tests.test_mcap_io import T0, Log, _calib, _enc, _simple_log
+from tests.test_mcap_io import (
+    ROS1,
+    T0,
+    Log,
+    _calib,
+    _enc,
+    _mosaic,
+    _simple_log,
+    ros1_camera_info,
+    ros1_header,
+    ros1_log,
+    ros1_record,
+)
 
 PIPELINE = ROOT / "pipelines" / "gnc_pose.yaml"
 MODELS = ROOT / "demo_data" / "models"
@@ -45,6 +62,65 @@ def test_run_on_converted_log_keeps_input_and_adds_poses(tmp_path, cache_dir):
     assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all()
 
 
+def _as_ros1_bayer(src: Path, dst: Path) -> None:
+    """The converted demo log as a ROS 1 colour-filter camera records it: bayer_rggb8 sensor_msgs/Image and
+    sensor_msgs/CameraInfo (ros1 encoding), the ground truth kept as it is (JSON), no depth."""
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        w = Writer(g)
+        w.start(profile="ros1", library="test")
+        ids: dict[str, int] = {}
+        for schema, ch, m in make_reader(f).iter_messages():
+            t = m.log_time
+            if ch.topic == "/camera/depth":
+                continue
+            if ch.topic == "/camera/calibration":
+                cal = CameraCalibration.FromString(m.data)
+                info = ros1_camera_info(t, np.reshape(cal.K, (3, 3)), cal.width, cal.height, cal.D)
+                rec = ros1_record("/camera/camera_info", info, t)
+            elif ch.topic == "/camera/image":
+                png = CompressedImage.FromString(m.data).data
+                rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+                h, w_ = rgb.shape[:2]
+                img = ROS1["sensor_msgs/Image"](
+                    header=ros1_header(t),
+                    height=h,
+                    width=w_,
+                    encoding="bayer_rggb8",
+                    is_bigendian=0,
+                    step=w_,
+                    data=_mosaic(rgb, "rggb").tobytes(),
+                )
+                rec = ros1_record("/camera/image_raw", img, t)
+            else:
+                rec = (ch.topic, schema.name, schema.data, m.data, t)
+            topic, type_, definition, data, _ = rec
+            if topic not in ids:
+                encoding = "ros1" if topic.startswith("/camera/") else ch.message_encoding
+                sid = w.register_schema(type_, "ros1msg" if encoding == "ros1" else schema.encoding, definition)
+                ids[topic] = w.register_channel(topic, encoding, sid)
+            w.add_message(ids[topic], log_time=t, data=data, publish_time=t)
+        w.finish()
+
+
+@pytest.mark.slow
+def test_run_on_a_ros1_bayer_log(tmp_path, cache_dir):
+    # A ROS 1 bag of a colour-filter camera, converted with `mcap convert`: the whole job reads it, finds
+    # the poses and writes them beside the log's own messages.
+    fox = convert.main(ROOT / "demo_data" / "ycbv", tmp_path / "demo.mcap", fmt="ycbv")
+    log_path = tmp_path / "ros1.mcap"
+    _as_ros1_bayer(fox, log_path)
+    out = run.main(PIPELINE, _manifest(tmp_path, log_path), tmp_path / "run", cache_dir=cache_dir, jobs=1)
+    with open(log_path, "rb") as f:
+        inp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
+    with open(out / "poses.mcap", "rb") as f:
+        outp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
+    assert {t for t, _, _ in inp} == {"/camera/image_raw", "/camera/camera_info", "/ground_truth/poses"}
+    assert set(inp) <= set(outp) and "/batchpose/tf" in {t for t, _, _ in outp}
+    frames = pd.read_csv(out / "report" / "frames.csv")
+    gel = frames[frames["obj_name"] == "009_gelatin_box"]
+    assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all(), gel[["status", "add_m"]]
+
+
 def _bad_logs(tmp_path):
     not_mcap = tmp_path / "photo.mcap"
     not_mcap.write_bytes(_enc(np.zeros((4, 4, 3), np.uint8)))
@@ -61,7 +137,16 @@ def _bad_logs(tmp_path):
     log_.json("/imu", {"a": 1}, T0)
     log_.proto("/cam/calibration", _calib(T0), T0)
     log_.close()
+    bad_schema = tmp_path / "ros1.mcap"  # a ROS 1 image topic whose message definition does not parse
+    ros1_log(
+        bad_schema,
+        [
+            ros1_record("/cam/camera_info", ros1_camera_info(T0), T0),
+            ("/cam/image", "sensor_msgs/Image", b"Header header\n!!\n", bytes(64), T0),
+        ],
+    )
     return [
+        (bad_schema, "ros1.mcap:/cam/image: cannot read its ros1 schema 'sensor_msgs/Image'"),
         (not_mcap, "photo.mcap: not an MCAP file"),
         (cut, "cut.mcap: truncated MCAP"),
         (crc, "crc.mcap: CRC mismatch"),
