@@ -93,14 +93,14 @@ def test_batch_turns_bad_input_into_failed_records(cracker_library):
         Frame("black", 0, 0, 0, good_cam, "png", black, source="black.png"),
         Frame("empty", 0, 1, 1, good_cam, "png", b"", source="empty.png"),
         Frame("garbage", 0, 2, 2, good_cam, "jpeg", b"not a jpeg", source="garbage.jpg"),
-        Frame("weird", 0, 3, 3, good_cam, "yuv422", b"\x00" * 100, source="log.mcap:/cam"),
+        Frame("weird", 0, 3, 3, good_cam, "nv21", b"\x00" * 100, source="log.mcap:/cam"),
         Frame("nan_k", 0, 4, 4, Camera(K_SYN * np.nan, 640, 480), "png", black, source="nan.png"),
     ]
     out = {f.frame_id: est.estimate_frame(f, [name])[0] for f in frames}
     assert out["black"].status == "bad_image" and "blank" in out["black"].reason
     assert out["empty"].status == "bad_image" and "empty" in out["empty"].reason
     assert out["garbage"].status == "bad_image" and "cannot decode" in out["garbage"].reason
-    assert out["weird"].status == "bad_image" and "unsupported image encoding 'yuv422'" in out["weird"].reason
+    assert out["weird"].status == "bad_image" and "unsupported image encoding 'nv21'" in out["weird"].reason
     assert out["nan_k"].status == "bad_camera" and "NaN" in out["nan_k"].reason
 
 
