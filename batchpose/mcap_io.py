@@ -448,11 +448,20 @@ class McapFrameSource(FrameSource):
             raise DataError(f"{self.path}: MCAP file does not exist")
         self._size = self.path.stat().st_size
         with open(self.path, "rb") as f:
-            head = f.read(8)
+            head = f.read(16)
             f.seek(max(0, self._size - 8))
             tail = f.read(8)
-        if head != MCAP_MAGIC:
-            raise DataError(f"{self.path}: not an MCAP file (expected magic {MCAP_MAGIC!r} at the start, got {head!r})")
+        if head.startswith(b"#ROSBAG V2.0"):
+            raise DataError(f"{self.path}: a ROS 1 bag, not an MCAP file; convert it with `mcap convert BAG OUT.mcap`")
+        if head.startswith(b"SQLite format 3"):
+            raise DataError(
+                f"{self.path}: an SQLite database (a ROS 2 .db3 bag?), not an MCAP file; convert it with "
+                "`mcap convert BAG.db3 OUT.mcap` or `ros2 bag convert`"
+            )
+        if head[:8] != MCAP_MAGIC:
+            raise DataError(
+                f"{self.path}: not an MCAP file (expected magic {MCAP_MAGIC!r} at the start, got {head[:8]!r})"
+            )
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
         self._counts: dict[int, int] | None = None

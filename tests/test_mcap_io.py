@@ -9,6 +9,7 @@ import importlib
 import io
 import json
 import logging
+import sqlite3
 from pathlib import Path
 
 import cv2
@@ -806,6 +807,18 @@ def test_not_an_mcap(tmp_path):
     p.write_bytes(_enc(np.zeros((4, 4, 3), np.uint8)))
     with pytest.raises(DataError, match=r"photo.mcap: not an MCAP file"):
         McapFrameSource(p)
+
+
+def test_a_bag_given_as_a_log_says_how_to_convert_it(tmp_path):
+    ros1 = tmp_path / "drive.bag"  # a ROS 1 bag starts with its version line and a 4096-byte header record
+    ros1.write_bytes(b"#ROSBAG V2.0\n" + bytes(4096))
+    with pytest.raises(DataError, match=r"drive.bag: a ROS 1 bag, not an MCAP file; convert it with `mcap convert"):
+        McapFrameSource(ros1)
+    db3 = tmp_path / "drive_0.db3"  # a ROS 2 bag before Iron: an SQLite database
+    with sqlite3.connect(db3) as con:
+        con.execute("CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT, type TEXT)")
+    with pytest.raises(DataError, match=r"drive_0.db3: an SQLite database \(a ROS 2 .db3 bag\?\), not an MCAP"):
+        McapFrameSource(db3)
 
 
 def test_truncated_without_complete_chunk(tmp_path):
