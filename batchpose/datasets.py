@@ -59,7 +59,7 @@ SPEC_KEYS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "ycbv": (("format", "root"), ()),
     "bop": (("format", "root"), ("obj_names",)),
     "images": (("format", "root"), ("intrinsics",)),
-    "mcap": (("format", "path"), ("image_topic", "calibration_topic", "depth_topic")),
+    "mcap": (("format", "path"), ("image_topic", "calibration_topic", "depth_topic", "rectified")),
 }
 INTRINSICS_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 #: Optional ``frames:`` keys of every format that choose which frames a run uses (:class:`Selection`).
@@ -550,7 +550,8 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
     Args:
         spec: ``{format: ycbv, root: PATH}``, ``{format: bop, root: PATH, obj_names: {1: name}}``,
             ``{format: images, root: PATH, intrinsics: PATH}`` (intrinsics default ``ROOT/intrinsics.yaml``)
-            or ``{format: mcap, path: PATH, image_topic: TOPIC, calibration_topic: TOPIC, depth_topic: TOPIC}``
+            or ``{format: mcap, path: PATH, image_topic: TOPIC, calibration_topic: TOPIC, depth_topic: TOPIC,
+            rectified: BOOL}``
             (topics optional; no depth topic: no depth).
         base_dir: folder that relative paths are resolved against (the manifest's folder).
 
@@ -597,11 +598,14 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
         for key in ("image_topic", "calibration_topic", "depth_topic"):
             if spec.get(key) is not None and not isinstance(spec[key], str):
                 raise ConfigError(f"frames.{key}: expected a topic name string, got {spec[key]!r}")
+        if spec.get("rectified") is not None and not isinstance(spec["rectified"], bool):
+            raise ConfigError(f"frames.rectified: expected true or false, got {spec['rectified']!r}")
         source = McapFrameSource(
             resolve("path"),
             image_topic=spec.get("image_topic"),
             calibration_topic=spec.get("calibration_topic"),
             depth_topic=spec.get("depth_topic"),
+            rectified=spec.get("rectified"),
         )
     return source if selection is None else SelectedFrames(source, selection)
 

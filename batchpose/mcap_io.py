@@ -232,6 +232,15 @@ class _Calib:
     height: int
     dist: np.ndarray
     model: str
+    #: (3, 4) projection matrix of the rectified image (all zero when the message has none).
+    P: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((3, 4)))
+
+    def rectified(self) -> _Calib | None:
+        """The camera of the rectified image: ``P``'s left 3x3 as K, no distortion; None without a ``P``."""
+        K = self.P[:, :3]
+        if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1):
+            return None
+        return _Calib(K=K.copy(), width=self.width, height=self.height, dist=np.zeros(0), model="", P=self.P)
 
 
 @dataclass(frozen=True)
@@ -306,12 +315,14 @@ def _to_calib(msg: Any) -> _Calib:
     # A malformed K becomes NaN so that the frame fails as bad_camera instead of stopping the batch.
     K = K.reshape(3, 3) if K.size == 9 else np.full((3, 3), np.nan)
     dist = np.asarray(list(_field(msg, "D", "d", default=[])), dtype=np.float64).reshape(-1)
+    P = np.asarray(list(_field(msg, "P", "p", default=[])), dtype=np.float64)
     return _Calib(
         K=K,
         width=int(_field(msg, "width", default=0)),
         height=int(_field(msg, "height", default=0)),
         dist=dist,
         model=str(_field(msg, "distortion_model", default="")),
+        P=P.reshape(3, 4) if P.size == 12 else np.zeros((3, 4)),
     )
 
 
@@ -334,6 +345,12 @@ def _to_image(msg: Any, kind: str) -> _Image:
         _stamp_ns(msg),
         raw=True,
     )
+
+
+def looks_rectified(topic: str) -> bool:
+    """True for an image topic ROS's image_proc names rectified: ``.../image_rect``, ``image_rect_color``
+    (also under an image_transport subtopic: ``.../image_rect_color/compressed``)."""
+    return any(part.startswith("image_rect") for part in topic.split("/"))
 
 
 def _camera(cal: _Calib, img: _Image | None) -> Camera:
@@ -418,6 +435,9 @@ class McapFrameSource(FrameSource):
             (same namespace: ``/cam/image`` <-> ``/cam/calibration`` or ``/cam/camera_info``).
         depth_topic: an image topic of depth registered to the images (optional; see the module docstring).
             An image without a depth image within :data:`DEPTH_MAX_GAP_NS` has none.
+        rectified: the images are rectified, so their camera is the calibration's projection matrix P
+            without distortion (as ROS defines CameraInfo), not K and D; None: when a part of the image
+            topic's name starts with ``image_rect`` (:func:`looks_rectified`).
 
     Frames: ``frame_id`` "mcap:<log_time_ns>", ``scene_id`` 0, ``im_id`` running index, ``stamp_ns`` =
     log time; when ``/ground_truth/poses`` holds a message at the image's log time (files written by
@@ -442,6 +462,7 @@ class McapFrameSource(FrameSource):
         image_topic: str | None = None,
         calibration_topic: str | None = None,
         depth_topic: str | None = None,
+        rectified: bool | None = None,
     ) -> None:
         self.path = Path(path)
         if not self.path.is_file():
@@ -485,6 +506,16 @@ class McapFrameSource(FrameSource):
         self.depth_topic = None if depth_topic is None else self._image_type_topic(depth_topic, "depth")
         self.image_topic = self._choose_image_topic(image_topic)
         self.calibration_topic = self._choose_calibration_topic(calibration_topic)
+        #: Whether the images are rectified (distortion removed): their camera is the calibration's P, not
+        #: K and D. None: as ROS's image_proc names them, ``image_rect``, ``image_rect_color``, ...
+        self.rectified = looks_rectified(self.image_topic) if rectified is None else bool(rectified)
+        if self.rectified and rectified is None:
+            log.info(
+                "%s:%s: rectified images (by the topic's name): using the calibration's P without distortion "
+                "(set rectified: false in the manifest's frames if they are not)",
+                self.path,
+                self.image_topic,
+            )
         self.gt_topic = GT_TOPIC if GT_TOPIC in self._topics() else None
         self._decoders: dict[int, Any] = {}
         self._factories = (ProtobufDecoderFactory(), Ros2DecoderFactory(), Ros1DecoderFactory())
@@ -815,16 +846,28 @@ class McapFrameSource(FrameSource):
         )
 
     def calibration(self, schema: Schema | None, channel: Channel, message: Message) -> _Calib:
-        """Decode a calibration message.
+        """Decode a calibration message: the camera of the image topic, so for rectified images
+        (:attr:`rectified`) the projection matrix P without distortion, else K and D.
 
         Raises:
             DataError: the message does not parse or lacks a field.
+            CameraError: the images are rectified and the message has no usable P.
         """
         msg = self.decode(schema, channel, message)
         try:
-            return _to_calib(msg)
+            cal = _to_calib(msg)
         except _FIELD_ERRORS as e:
             raise self._bad_field(schema, channel, message, e) from None
+        if not self.rectified:
+            return cal
+        rect = cal.rectified()
+        if rect is None:
+            raise CameraError(
+                f"{self.path}:{channel.topic}: the images on {self.image_topic} are rectified but the calibration "
+                f"at log time {message.log_time} has no projection matrix P (P = {cal.P.reshape(-1).tolist()}); "
+                "set rectified: false in the manifest's frames if the images are not rectified"
+            )
+        return rect
 
     def image(self, schema: Schema | None, channel: Channel, message: Message) -> _Image:
         """Decode an image message (its pixel bytes stay encoded).

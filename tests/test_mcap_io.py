@@ -476,6 +476,50 @@ def test_ros1_image_compressed_image_and_camera_info(tmp_path):
     np.testing.assert_array_equal(decode_image(ir)[:, :, 0], (mono / 257).astype(np.uint8))
 
 
+@pytest.mark.parametrize(
+    ("topic", "rectified", "expect"),
+    [
+        ("/stereo/left/image_rect_color", None, "P"),
+        ("/stereo/left/image_rect/compressed", None, "P"),
+        ("/stereo/left/image_raw", None, "K"),
+        ("/stereo/left/image_raw", True, "P"),
+        ("/stereo/left/image_rect_color", False, "K"),
+    ],
+)
+def test_rectified_images_take_the_projection_matrix(tmp_path, topic, rectified, expect):
+    # ROS's CameraInfo: K and D describe the raw image; a rectified image (image_proc's image_rect*) has
+    # no distortion left and its camera is P's left 3x3, which differs from K.
+    P = np.array([[70.0, 0.0, 33.0, -7.0], [0.0, 70.0, 22.5, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    info = ros1_camera_info(T0)
+    info.P = P.reshape(-1).tolist()
+    img = ROS1["sensor_msgs/Image"](
+        header=ros1_header(T0), height=H, width=W, encoding="mono8", is_bigendian=0, step=W, data=bytes(W * H)
+    )
+    ros1_log(tmp_path / "rect.mcap", [ros1_record("/stereo/left/camera_info", info, T0), ros1_record(topic, img, T0)])
+    src = McapFrameSource(tmp_path / "rect.mcap", rectified=rectified)
+    (fr,) = src
+    assert src.rectified == (expect == "P")
+    if expect == "P":
+        np.testing.assert_array_equal(fr.camera.K, P[:, :3])
+        assert fr.camera.dist.size == 0
+    else:
+        np.testing.assert_array_equal(fr.camera.K, K1)
+        np.testing.assert_array_equal(fr.camera.dist, [0.1, -0.05, 0.001, 0.002, 0.01])
+
+
+def test_rectified_images_without_a_projection_matrix_are_refused(tmp_path):
+    img = ROS1["sensor_msgs/Image"](
+        header=ros1_header(T0), height=H, width=W, encoding="mono8", is_bigendian=0, step=W, data=bytes(W * H)
+    )
+    info = ros1_camera_info(T0)
+    info.P = [0.0] * 12  # an uncalibrated driver's CameraInfo
+    ros1_log(
+        tmp_path / "rect.mcap", [ros1_record("/cam/camera_info", info, T0), ros1_record("/cam/image_rect", img, T0)]
+    )
+    with pytest.raises(CameraError, match=r"the images on /cam/image_rect are rectified but the calibration at log "):
+        list(McapFrameSource(tmp_path / "rect.mcap"))
+
+
 def ros1_record(topic: str, msg, t: int) -> tuple[str, str, bytes, bytes, int]:
     """One message of :func:`ros1_log`: topic, type, definition, serialized bytes, log time."""
     buf = io.BytesIO()

@@ -153,6 +153,15 @@ def _cli(*args, cwd=ROOT):
             "",
             "models.root must be a string (a path), got 123",
         ),
+        (
+            {
+                "frames": {"format": "mcap", "path": "x.mcap", "rectified": "yes"},
+                "models": {"root": str(ROOT / "demo_data/models")},
+                "objects": ["003_cracker_box"],
+            },
+            "",
+            "frames.rectified: expected true or false, got 'yes'",
+        ),
     ],
 )
 def test_bad_manifest_or_pipeline_is_one_line_exit_2(tmp_path, manifest, pipeline_extra, expect):
