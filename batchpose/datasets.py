@@ -453,7 +453,13 @@ class BopFrameSource(FrameSource):
 
 
 def load_intrinsics(path: Path) -> Camera:
-    """Read an intrinsics YAML (``fx, fy, cx, cy, width, height``, optional ``dist``, ``distortion_model``).
+    """Read a camera's intrinsics from YAML, in one of three forms:
+
+    - batchpose's: ``fx, fy, cx, cy, width, height``, optional ``dist`` (OpenCV order), ``distortion_model``;
+    - the camera-info YAML ROS's ``camera_calibration`` writes (``image_width``, ``image_height``,
+      ``camera_matrix: {rows, cols, data}``, ``distortion_model``, ``distortion_coefficients``, ...);
+    - OpenCV's FileStorage YAML (``!!opencv-matrix``, OpenCV 4's ``%YAML:1.0`` header) with the same key
+      names, as OpenCV's calibration sample writes it.
 
     Raises:
         DataError: the file is missing, not UTF-8 text or not YAML.
@@ -463,16 +469,22 @@ def load_intrinsics(path: Path) -> Camera:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: intrinsics file does not exist (expected YAML with {', '.join(INTRINSICS_KEYS)})")
+    text = read_text(path)
+    if text.startswith("%YAML:") or "!!opencv-matrix" in text:  # OpenCV's YAML: PyYAML reads neither
+        return _camera_info_intrinsics(path, _opencv_yaml(path))
     try:
-        raw = yaml.safe_load(read_text(path))
+        raw = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise DataError(f"{path}: invalid YAML ({one_line(e)})") from None
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: expected a mapping with {', '.join(INTRINSICS_KEYS)}")
+    if "camera_matrix" in raw:
+        return _camera_info_intrinsics(path, raw)
     unknown = sorted(set(raw) - set(INTRINSICS_KEYS) - {"dist", "distortion_model"})
     if unknown:
         raise ConfigError(
-            f"{path}: unknown key {unknown[0]!r} (allowed: {', '.join(INTRINSICS_KEYS)}, dist, distortion_model)"
+            f"{path}: unknown key {unknown[0]!r} (allowed: {', '.join(INTRINSICS_KEYS)}, dist, distortion_model; "
+            "or a ROS camera-info YAML with camera_matrix)"
         )
     missing = [k for k in INTRINSICS_KEYS if k not in raw]
     if missing:
@@ -489,6 +501,83 @@ def load_intrinsics(path: Path) -> Camera:
     model = str(raw.get("distortion_model") or ("plumb_bob" if dist.size else ""))
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     cam = Camera(K=K, width=width, height=height, dist=dist, distortion_model=model)
+    return cam.validate(where=str(path))
+
+
+#: Keys of a ROS camera-info YAML (``camera_calibration``'s ``ost.yaml``); the first three are required.
+CAMERA_INFO_KEYS = (
+    "image_width",
+    "image_height",
+    "camera_matrix",
+    "distortion_model",
+    "distortion_coefficients",
+    "camera_name",
+    "rectification_matrix",
+    "projection_matrix",
+)
+
+
+def _opencv_yaml(path: Path) -> dict[str, Any]:
+    """The :data:`CAMERA_INFO_KEYS` an OpenCV FileStorage YAML holds, as a ROS camera-info YAML has them."""
+    import cv2  # noqa: PLC0415 - only this rare format needs it here
+
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_FORMAT_YAML)
+    except (cv2.error, SystemError) as e:  # the binding wraps a parse error in a SystemError
+        why = str(e.__cause__ or e).strip().splitlines()[-1].split("error: ")[-1]
+        raise DataError(f"{path}: invalid OpenCV YAML ({why})") from None
+    try:
+        root = fs.root()
+        raw: dict[str, Any] = {}
+        for key in root.keys():
+            node = fs.getNode(key)
+            if node.isMap() and node.getNode("data").isSeq():  # !!opencv-matrix
+                raw[key] = {"data": node.mat().reshape(-1).tolist()}
+            elif node.isInt() or node.isReal():
+                raw[key] = int(node.real()) if node.isInt() else node.real()
+            elif node.isString():
+                raw[key] = node.string()
+            elif node.isSeq():
+                raw[key] = {"data": [node.at(i).real() for i in range(node.size())]}
+            else:
+                raw[key] = None
+    finally:
+        fs.release()
+    return raw
+
+
+def _camera_info_intrinsics(path: Path, raw: dict[str, Any]) -> Camera:
+    """A camera from a ROS camera-info YAML's keys (K and D: the raw image's camera)."""
+    unknown = sorted(set(raw) - set(CAMERA_INFO_KEYS), key=str)
+    if unknown:
+        raise ConfigError(
+            f"{path}: unknown key {unknown[0]!r} in a camera-info YAML (allowed: {', '.join(CAMERA_INFO_KEYS)})"
+        )
+    missing = [k for k in CAMERA_INFO_KEYS[:3] if k not in raw]
+    if missing:
+        raise ConfigError(
+            f"{path}: missing key {missing[0]!r} (a camera-info YAML needs {', '.join(CAMERA_INFO_KEYS[:3])})"
+        )
+
+    def data(key: str) -> np.ndarray:
+        m = raw.get(key)
+        values = m.get("data") if isinstance(m, dict) else m
+        try:
+            if values is None or any(isinstance(v, bool) for v in values):
+                raise TypeError(f"got {m!r}")
+            return np.asarray(values, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"{path}: {key}.data must be a list of numbers ({one_line(e)})") from None
+
+    K = data("camera_matrix")
+    if K.size != 9:
+        raise ConfigError(f"{path}: camera_matrix.data must hold 9 numbers (3x3, row-major), got {K.size}")
+    dist = data("distortion_coefficients") if raw.get("distortion_coefficients") is not None else np.zeros(0)
+    sizes = [raw[k] for k in ("image_width", "image_height")]
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in sizes):
+        raise ConfigError(f"{path}: image_width and image_height must be whole numbers, got {sizes}")
+    model = str(raw.get("distortion_model") or ("plumb_bob" if dist.size else ""))
+    cam = Camera(K=K.reshape(3, 3), width=sizes[0], height=sizes[1], dist=dist, distortion_model=model)
     return cam.validate(where=str(path))
 
 

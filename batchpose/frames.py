@@ -74,7 +74,8 @@ class Camera:
     distortion_model: str = ""
 
     def validate(self, where: str = "camera") -> Camera:
-        """Raise :class:`CameraError` naming ``where`` unless K is a finite, positive-focal 3x3 matrix."""
+        """Raise :class:`CameraError` naming ``where`` unless K is a finite, positive-focal, upper-triangular
+        3x3 matrix with the last row (0, 0, 1)."""
         K = np.asarray(self.K, dtype=np.float64)
         if K.shape != (3, 3):
             raise CameraError(f"{where}: intrinsics K must be 3x3, got shape {K.shape}")
@@ -82,6 +83,10 @@ class Camera:
             raise CameraError(f"{where}: intrinsics K contains NaN or inf: {K.tolist()}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise CameraError(f"{where}: focal lengths must be positive, got fx={K[0, 0]}, fy={K[1, 1]}")
+        if not np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9) or abs(K[1, 0]) > 1e-9:  # e.g. written transposed
+            raise CameraError(
+                f"{where}: intrinsics K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (row-major), got {K.tolist()}"
+            )
         if self.width <= 0 or self.height <= 0:
             raise CameraError(f"{where}: image size must be positive, got {self.width}x{self.height}")
         if self.dist.size and not np.all(np.isfinite(self.dist)):

@@ -62,6 +62,7 @@ def test_millimetre_mesh_converted_or_refused(tmp_path, caplog):
         (np.array([[np.nan, 0, 320], [0, 800, 240], [0, 0, 1]]), "NaN"),
         (np.array([[-800.0, 0, 320], [0, 800, 240], [0, 0, 1]]), "focal lengths must be positive"),
         (np.array([[0.0, 0, 320], [0, 800, 240], [0, 0, 1]]), "focal lengths must be positive"),
+        (np.array([[800.0, 0, 0], [0, 800, 0], [320, 240, 1]]), r"K must be \[\[fx, s, cx\], \[0, fy, cy\]"),
     ],
 )
 def test_bad_intrinsics(cracker_library, K, msg):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import types
 from pathlib import Path
 
@@ -175,6 +176,102 @@ def test_images_folder_with_distortion(tmp_path):
 def test_images_bad_intrinsics(tmp_path, change, error, match):
     make_images(tmp_path, **change)
     with pytest.raises(error, match=match):
+        ImagesFrameSource(tmp_path)
+
+
+# What ROS's camera_calibration writes (ost.yaml), for the camera make_images draws.
+ROS_OST_YAML = """image_width: 32
+image_height: 24
+camera_name: narrow_stereo
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [500.0, 0.0, 15.5, 0.0, 510.0, 11.5, 0.0, 0.0, 1.0]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [0.1, -0.01, 0.0, 0.0, 0.001]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [490.0, 0.0, 15.0, 0.0, 0.0, 505.0, 11.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+"""
+
+
+# OpenCV 4's FileStorage YAML (OpenCV 5 writes "%YAML 1.2" instead of the "%YAML:1.0" PyYAML refuses).
+OPENCV4_YAML = """%YAML:1.0
+---
+image_width: 32
+image_height: 24
+camera_matrix: !!opencv-matrix
+   rows: 3
+   cols: 3
+   dt: d
+   data: [ 500., 0., 15.5, 0., 510., 11.5, 0., 0., 1. ]
+distortion_coefficients: !!opencv-matrix
+   rows: 5
+   cols: 1
+   dt: d
+   data: [ 0.1, -0.01, 0., 0., 0.001 ]
+"""
+
+
+@pytest.mark.parametrize("form", ["ros", "opencv", "opencv4"])
+def test_images_with_a_calibration_tools_yaml(tmp_path, form):
+    imgs = make_images(tmp_path)
+    path = tmp_path / "intrinsics.yaml"
+    if form == "ros":
+        path.write_text(ROS_OST_YAML)
+    elif form == "opencv4":
+        path.write_text(OPENCV4_YAML)
+    else:  # OpenCV's FileStorage, as its calibration sample writes the result
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        fs.write("image_width", 32)
+        fs.write("image_height", 24)
+        fs.write("camera_matrix", K)
+        fs.write("distortion_coefficients", np.array([[0.1, -0.01, 0.0, 0.0, 0.001]]))
+        fs.release()
+        assert "!!opencv-matrix" in path.read_text()
+    frames = list(ImagesFrameSource(tmp_path))
+    np.testing.assert_array_equal(frames[0].camera.K, K)
+    np.testing.assert_array_equal(frames[0].camera.dist, [0.1, -0.01, 0.0, 0.0, 0.001])
+    assert (frames[0].camera.width, frames[0].camera.height, frames[0].camera.distortion_model) == (32, 24, "plumb_bob")
+    np.testing.assert_array_equal(decode_image(frames[1]), imgs[1][:, :, ::-1])
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "error", "match"),
+    [
+        ("camera_name: narrow_stereo", "camera_nme: x", ConfigError, "unknown key 'camera_nme' in a camera-info YAML"),
+        ("image_width: 32\n", "", ConfigError, "missing key 'image_width' (a camera-info YAML needs"),
+        ("0.0, 0.0, 1.0]\ndist", "0.0]\ndist", ConfigError, "camera_matrix.data must hold 9 numbers"),
+        (
+            "data: [500.0, 0.0, 15.5,",
+            "data: [500.0, 0.0, abc,",
+            ConfigError,
+            "camera_matrix.data must be a list of numbers",
+        ),
+        ("image_height: 24", "image_height: 24.5", ConfigError, "image_width and image_height must be whole numbers"),
+        ("0.0, 510.0, 11.5, 0.0, 0.0, 1.0]", "0.0, 510.0, 0.0, 15.5, 11.5, 1.0]", CameraError, "K must be"),
+    ],
+)
+def test_images_bad_calibration_tools_yaml(tmp_path, old, new, error, match):
+    make_images(tmp_path)
+    assert old in ROS_OST_YAML
+    (tmp_path / "intrinsics.yaml").write_text(ROS_OST_YAML.replace(old, new, 1))
+    with pytest.raises(error, match=re.escape(match)):
+        ImagesFrameSource(tmp_path)
+
+
+def test_images_broken_opencv_yaml(tmp_path):
+    make_images(tmp_path)
+    (tmp_path / "intrinsics.yaml").write_text(OPENCV4_YAML.replace("0., 0., 1. ]", "0., 0., 1. "))
+    with pytest.raises(DataError, match=r"intrinsics.yaml: invalid OpenCV YAML \(\(-212:Parsing error\)"):
         ImagesFrameSource(tmp_path)
 
 
