@@ -217,6 +217,14 @@ MSG: builtin_interfaces/Time
 int32 sec
 uint32 nanosec
 """
+ROS_ROI = """================================================================================
+MSG: sensor_msgs/RegionOfInterest
+uint32 x_offset
+uint32 y_offset
+uint32 height
+uint32 width
+bool do_rectify
+"""
 ROS_IMAGE = (
     ROS_HEADER
     + """uint32 height
@@ -243,14 +251,7 @@ uint32 binning_y
 sensor_msgs/RegionOfInterest roi
 """
     + ROS_DEPS
-    + """================================================================================
-MSG: sensor_msgs/RegionOfInterest
-uint32 x_offset
-uint32 y_offset
-uint32 height
-uint32 width
-bool do_rectify
-"""
+    + ROS_ROI
 )
 
 
@@ -377,13 +378,6 @@ float64[12] P
 uint32 binning_x
 uint32 binning_y
 RegionOfInterest roi
-================================================================================
-MSG: sensor_msgs/RegionOfInterest
-uint32 x_offset
-uint32 y_offset
-uint32 height
-uint32 width
-bool do_rectify
 """
 #: ROS 1 message classes generated from their definitions, as ``mcap convert`` of a bag stores them.
 ROS1 = {
@@ -391,7 +385,7 @@ ROS1 = {
     for name, text in (
         ("sensor_msgs/Image", ROS1_IMAGE),
         ("sensor_msgs/CompressedImage", "Header header\nstring format\nuint8[] data\n"),
-        ("sensor_msgs/CameraInfo", ROS1_CAMERA_INFO),
+        ("sensor_msgs/CameraInfo", ROS1_CAMERA_INFO + ROS_ROI),
     )
     for name, cls in ros1_dynamic.generate_dynamic(name, text + ROS1_DEPS).items()
 }
@@ -401,6 +395,20 @@ ros1_genpy = importlib.import_module(ros1_dynamic.__package__)  # genpy: Time
 def ros1_header(t: int, seq: int = 0):
     stamp = ros1_genpy.Time(t // 1_000_000_000, t % 1_000_000_000)
     return ROS1["std_msgs/Header"](seq=seq, stamp=stamp, frame_id="cam")
+
+
+def ros1_image(t: int, px: np.ndarray, encoding: str, seq: int = 0, bigendian: bool = False):
+    """A ROS 1 sensor_msgs/Image of the (H, W[, C]) array ``px``, rows as they lie in memory."""
+    data = px.astype(px.dtype.newbyteorder(">")).tobytes() if bigendian else px.tobytes()
+    return ROS1["sensor_msgs/Image"](
+        header=ros1_header(t, seq),
+        height=px.shape[0],
+        width=px.shape[1],
+        encoding=encoding,
+        is_bigendian=int(bigendian),
+        step=px.strides[0],
+        data=data,
+    )
 
 
 def ros1_camera_info(t: int, K: np.ndarray = K1, w: int = W, h: int = H, dist=(0.1, -0.05, 0.001, 0.002, 0.01)):
@@ -433,32 +441,9 @@ def test_ros1_image_compressed_image_and_camera_info(tmp_path):
                 ROS1["sensor_msgs/CompressedImage"](header=ros1_header(t), format="jpeg", data=jpg),
                 log_time=t,
             )
-            w.write_message(
-                "/camera/image_raw",
-                ROS1["sensor_msgs/Image"](
-                    header=ros1_header(t + 7, seq=i),
-                    height=H,
-                    width=W,
-                    encoding="bayer_rggb8",
-                    is_bigendian=0,
-                    step=W,
-                    data=_mosaic(rgb, "rggb").tobytes(),
-                ),
-                log_time=t + 1000,
-            )
-            w.write_message(
-                "/ir/image_raw",
-                ROS1["sensor_msgs/Image"](
-                    header=ros1_header(t),
-                    height=H,
-                    width=W,
-                    encoding="mono16",
-                    is_bigendian=1,
-                    step=W * 2,
-                    data=mono.astype(">u2").tobytes(),
-                ),
-                log_time=t,
-            )
+            bayer = ros1_image(t + 7, _mosaic(rgb, "rggb"), "bayer_rggb8", seq=i)
+            w.write_message("/camera/image_raw", bayer, log_time=t + 1000)
+            w.write_message("/ir/image_raw", ros1_image(t, mono, "mono16", bigendian=True), log_time=t)
     src = McapFrameSource(path, image_topic="/camera/image_raw")
     assert (src.calibration_topic, src.count()) == ("/camera/camera_info", 3)
     frames = list(src)
@@ -492,9 +477,7 @@ def test_rectified_images_take_the_projection_matrix(tmp_path, topic, rectified,
     P = np.array([[70.0, 0.0, 33.0, -7.0], [0.0, 70.0, 22.5, 0.0], [0.0, 0.0, 1.0, 0.0]])
     info = ros1_camera_info(T0)
     info.P = P.reshape(-1).tolist()
-    img = ROS1["sensor_msgs/Image"](
-        header=ros1_header(T0), height=H, width=W, encoding="mono8", is_bigendian=0, step=W, data=bytes(W * H)
-    )
+    img = ros1_image(T0, np.zeros((H, W), np.uint8), "mono8")
     ros1_log(tmp_path / "rect.mcap", [ros1_record("/stereo/left/camera_info", info, T0), ros1_record(topic, img, T0)])
     src = McapFrameSource(tmp_path / "rect.mcap", rectified=rectified)
     (fr,) = src
@@ -508,9 +491,7 @@ def test_rectified_images_take_the_projection_matrix(tmp_path, topic, rectified,
 
 
 def test_rectified_images_without_a_projection_matrix_are_refused(tmp_path):
-    img = ROS1["sensor_msgs/Image"](
-        header=ros1_header(T0), height=H, width=W, encoding="mono8", is_bigendian=0, step=W, data=bytes(W * H)
-    )
+    img = ros1_image(T0, np.zeros((H, W), np.uint8), "mono8")
     info = ros1_camera_info(T0)
     info.P = [0.0] * 12  # an uncalibrated driver's CameraInfo
     ros1_log(
@@ -541,9 +522,7 @@ def ros1_log(path: Path, records: list[tuple[str, str, bytes, bytes, int]]) -> N
 
 
 def test_ros1_image_message_cut_short_fails_only_its_frame(tmp_path):
-    img = ROS1["sensor_msgs/Image"](
-        header=ros1_header(T0), height=H, width=W, encoding="mono8", is_bigendian=0, step=W, data=bytes(W * H)
-    )
+    img = ros1_image(T0, np.zeros((H, W), np.uint8), "mono8")
     records = []
     for t in (T0, T0 + DT):
         records += [ros1_record("/cam/camera_info", ros1_camera_info(t), t), ros1_record("/cam/image", img, t)]

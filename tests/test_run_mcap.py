@@ -18,7 +18,6 @@ from mcap.writer import Writer
 from batchpose import convert, run
 from tests.conftest import ROOT
 from tests.test_mcap_io import (
-    ROS1,
     T0,
     Log,
     _calib,
@@ -26,7 +25,7 @@ from tests.test_mcap_io import (
     _mosaic,
     _simple_log,
     ros1_camera_info,
-    ros1_header,
+    ros1_image,
     ros1_log,
     ros1_record,
 )
@@ -80,17 +79,7 @@ def _as_ros1_bayer(src: Path, dst: Path) -> None:
             elif ch.topic == "/camera/image":
                 png = CompressedImage.FromString(m.data).data
                 rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
-                h, w_ = rgb.shape[:2]
-                img = ROS1["sensor_msgs/Image"](
-                    header=ros1_header(t),
-                    height=h,
-                    width=w_,
-                    encoding="bayer_rggb8",
-                    is_bigendian=0,
-                    step=w_,
-                    data=_mosaic(rgb, "rggb").tobytes(),
-                )
-                rec = ros1_record("/camera/image_raw", img, t)
+                rec = ros1_record("/camera/image_raw", ros1_image(t, _mosaic(rgb, "rggb"), "bayer_rggb8"), t)
             else:
                 rec = (ch.topic, schema.name, schema.data, m.data, t)
             topic, type_, definition, data, _ = rec
