@@ -6,6 +6,7 @@ to pass between processes and PNG/JPEG bytes can be copied into MCAP without re-
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 
 import cv2
@@ -51,8 +52,14 @@ _RAW_TO_RGB = {
     "yuv422_yuy2": cv2.COLOR_YUV2RGB_YUY2,
 }
 COMPRESSED_FORMATS = ("png", "jpeg")
-#: Encodings of a depth image understood by :func:`decode_depth`: 16-bit PNG, or raw 16-bit / 32-bit float.
-DEPTH_ENCODINGS = ("png", "16UC1", "mono16", "32FC1")
+#: ROS's compressed_depth_image_transport (a ``.../compressedDepth`` topic) with PNG inside: a 12-byte
+#: header (int32 format, float32 A, float32 B), then a 16-bit PNG of the depth (16UC1 / mono16, mm), or of
+#: quantised inverse depth q for 32FC1 (depth = A / (q - B) metres; q = 0: no reading).
+COMPRESSED_DEPTH_FORMATS = ("compressedDepth png 16UC1", "compressedDepth png mono16", "compressedDepth png 32FC1")
+#: Encodings of a depth image understood by :func:`decode_depth`: 16-bit PNG, raw 16-bit / 32-bit float, or
+#: ROS's compressedDepth (:data:`COMPRESSED_DEPTH_FORMATS`).
+DEPTH_ENCODINGS = ("png", "16UC1", "mono16", "32FC1", *COMPRESSED_DEPTH_FORMATS)
+_COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
 
 
 @dataclass(frozen=True)
@@ -260,11 +267,21 @@ def decode_depth(frame: Frame) -> np.ndarray | None:
             f"{where}: the colour image's size is unknown (its header is unreadable), so the depth "
             "image cannot be matched to it"
         )
-    if fmt == "png":
-        img = cv2.imdecode(np.frombuffer(frame.depth_data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if fmt == "png" or fmt in COMPRESSED_DEPTH_FORMATS:
+        png = frame.depth_data
+        if fmt != "png":
+            if len(png) <= _COMPRESSED_DEPTH_HEADER.size:
+                raise ImageError(f"{where}: compressedDepth image of {len(png)} bytes has no PNG after its header")
+            _, quant_a, quant_b = _COMPRESSED_DEPTH_HEADER.unpack_from(png)
+            png = png[_COMPRESSED_DEPTH_HEADER.size :]
+        img = cv2.imdecode(np.frombuffer(png, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
         if img is None or img.ndim != 2 or img.dtype != np.uint16:
             got = "undecodable" if img is None else f"{img.dtype} with {1 if img.ndim == 2 else img.shape[2]} channels"
             raise ImageError(f"{where}: depth PNG must be single-channel 16-bit, got {got}")
+        if fmt.endswith("32FC1"):  # quantised inverse depth
+            q = img.astype(np.float32)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                img = np.where(img > 0, np.float32(quant_a) / (q - np.float32(quant_b)), np.float32(0.0))
     else:
         dtype = np.float32 if fmt == "32FC1" else np.uint16
         itemsize = np.dtype(dtype).itemsize

@@ -116,7 +116,15 @@ DEPTH_TOPIC = "/camera/depth"
 #: Depth images are paired with the colour image whose header stamp is nearest, within this.
 DEPTH_MAX_GAP_NS = 20_000_000
 #: Metres per unit of a depth encoding (REP 118: 16-bit depth in millimetres, float depth in metres).
-DEPTH_UNITS_M = {"16UC1": 0.001, "mono16": 0.001, "png": 0.001, "32FC1": 1.0}
+DEPTH_UNITS_M = {
+    "16UC1": 0.001,
+    "mono16": 0.001,
+    "png": 0.001,
+    "32FC1": 1.0,
+    "compressedDepth png 16UC1": 0.001,
+    "compressedDepth png mono16": 0.001,
+    "compressedDepth png 32FC1": 1.0,
+}
 CAMERA_FRAME_ID = "camera"
 OUTPUT_PREFIX = "/batchpose/"
 SCENE_TOPIC = "/batchpose/scene"
@@ -261,8 +269,10 @@ def _compressed_format(fmt: str) -> str:
     """Normalise a CompressedImage format ("jpeg", "image/png", "bgr8; jpeg compressed bgr8")."""
     f = fmt.lower().strip()
     f = f.removeprefix("image/")
-    if "compresseddepth" in f:  # a 12-byte header before the PNG: not plain png
-        return f
+    if "compresseddepth" in f:  # ROS's "16UC1; compressedDepth png": a 12-byte header before the PNG
+        encoding = fmt.split(";")[0].strip()
+        codec = f.split("compresseddepth", 1)[1].strip() or "png"  # the oldest versions wrote no codec
+        return f"compressedDepth {codec} {encoding}"
     if "jpeg" in f or "jpg" in f:
         return "jpeg"
     if "png" in f:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import struct
 from pathlib import Path
 
 import cv2
@@ -60,6 +61,8 @@ def test_decode_depth_encodings():
         (_frame("png", cv2.imencode(".png", np.zeros((5, 4), np.uint16))[1].tobytes()), "depth image is 4x5"),
         (_frame("16UC1", b"\0" * 20), r"raw 16UC1 depth of 4x3 \(step 8\) needs 24 bytes, got 20"),
         (_frame("16UC1", b"\0" * 24, scale=0.0), "depth scale must be a positive number"),
+        (_frame("compressedDepth rvl 16UC1", b"\0" * 40), "unsupported depth encoding 'compressedDepth rvl 16UC1'"),
+        (_frame("compressedDepth png 32FC1", b"\0" * 12), "compressedDepth image of 12 bytes has no PNG after"),
     ],
 )
 def test_decode_depth_rejects_bad_input(frame, match):
@@ -294,6 +297,50 @@ def test_mcap_depth_topic_pairs_by_header_stamp(tmp_path):
         np.testing.assert_allclose(decode_depth(frames[i]), mm, rtol=1e-6)
     with pytest.raises(Exception, match="depth topic '/cam/nope' not found"):
         open_frames({"format": "mcap", "path": str(tmp_path / "rgbd.mcap"), "depth_topic": "/cam/nope"}, tmp_path)
+
+
+def _compressed_depth(depth_m: np.ndarray, encoding: str) -> bytes:
+    """What ROS's compressed_depth_image_transport publishes with its default parameters (PNG inside)."""
+    if encoding == "32FC1":  # quantised inverse depth, depth_quantization 100, depth_max 10 m
+        a = np.float32(100.0 * 101.0)
+        b = np.float32(1.0) - a / np.float32(10.0)
+        inv = a / np.maximum(depth_m, 1e-3).astype(np.float32) + b
+        q = np.where((depth_m > 0) & (depth_m < 10), inv, 0).astype(np.uint16)
+        return struct.pack("<iff", 0, a, b) + cv2.imencode(".png", q)[1].tobytes()
+    mm = np.round(depth_m * 1000).astype(np.uint16)
+    return struct.pack("<iff", 0, 0.0, 0.0) + cv2.imencode(".png", mm)[1].tobytes()
+
+
+@pytest.mark.parametrize("encoding", ["16UC1", "32FC1"])
+def test_ros_compressed_depth_topic(tmp_path, encoding):
+    """A ROS 1 log with its depth on .../compressedDepth (format "16UC1; compressedDepth png" or 32FC1's
+    quantised inverse depth): read to the millimetre, and no reading stays none."""
+    from batchpose.datasets import open_frames
+    from tests.test_mcap_io import DT, ROS1, T0, H, W, ros1_camera_info, ros1_header, ros1_image, ros1_log
+    from tests.test_mcap_io import ros1_record as rec
+
+    depth = np.random.default_rng(8).uniform(0.4, 3.0, (H, W))
+    depth[5, 7] = 0.0  # no reading
+    records = []
+    for i in range(2):
+        t = T0 + i * DT
+        fmt = f"{encoding}; compressedDepth" + (" png" if i else "")  # the oldest versions wrote no codec
+        msg = ROS1["sensor_msgs/CompressedImage"](header=ros1_header(t), format=fmt)
+        msg.data = _compressed_depth(depth, encoding)
+        records += [
+            rec("/camera/color/camera_info", ros1_camera_info(t), t),
+            rec("/camera/color/image_raw", ros1_image(t, np.zeros((H, W), np.uint8), "mono8"), t),
+            rec("/camera/depth/image_raw/compressedDepth", msg, t + 1),
+        ]
+    ros1_log(tmp_path / "rgbd.mcap", records)
+    spec = {"format": "mcap", "path": "rgbd.mcap", "depth_topic": "/camera/depth/image_raw/compressedDepth"}
+    frames = list(open_frames(spec, tmp_path))
+    assert [f.depth_format for f in frames] == [f"compressedDepth png {encoding}"] * 2
+    for f in frames:
+        out = decode_depth(f)
+        assert out[5, 7] == 0.0
+        # 16UC1 holds whole millimetres; 32FC1's inverse depth steps are depth^2 / 10100 m (0.9 mm at 3 m)
+        np.testing.assert_allclose(out, depth, atol=0.5e-3 if encoding == "16UC1" else 0.9e-3)
 
 
 def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
