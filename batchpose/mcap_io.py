@@ -49,6 +49,7 @@ import io
 import json
 import logging
 import os
+import re
 import struct
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -357,6 +358,17 @@ def _to_image(msg: Any, kind: str) -> _Image:
     )
 
 
+def _colour_rank(topic: str) -> int:
+    """0 for a topic named as colour (``color``, ``rgb``), 2 for one named as infrared or mono (``infra1``,
+    ``ir``, ``mono``, ``thermal``), else 1: SIFT matches a textured mesh in the colour image."""
+    words = re.split(r"[/_\-.]+", topic.lower())
+    if any(w in ("color", "colour", "rgb", "rgb8") for w in words):
+        return 0
+    if any(re.fullmatch(r"infra\d*|ir\d*|mono|thermal|nir", w) for w in words):
+        return 2
+    return 1
+
+
 def looks_rectified(topic: str) -> bool:
     """True for an image topic ROS's image_proc names rectified: ``.../image_rect``, ``image_rect_color``
     (also under an image_transport subtopic: ``.../image_rect_color/compressed``)."""
@@ -439,8 +451,9 @@ class McapFrameSource(FrameSource):
 
     Args:
         path: the MCAP file.
-        image_topic: image topic to read; default: the first image topic (one with a calibration topic
-            beside it preferred), logged.
+        image_topic: image topic to read; default (logged): the first image topic whose name does not say
+            depth, preferring one with a calibration topic beside it, then one named as colour (``color``,
+            ``rgb``) over one named as infrared or mono (``infra1``, ``ir``, ``mono``).
         calibration_topic: calibration topic; default: the calibration topic beside the image topic
             (same namespace: ``/cam/image`` <-> ``/cam/calibration`` or ``/cam/camera_info``).
         depth_topic: an image topic of depth registered to the images (optional; see the module docstring).
@@ -691,8 +704,8 @@ class McapFrameSource(FrameSource):
                 f"sensor_msgs/Image, sensor_msgs/CompressedImage); "
                 f"topics: {listing or 'none'})"
             )
-        with_calib = [t for t in images if self._calibration_beside(t)]
-        chosen = (with_calib or images)[0]
+        # With a calibration beside it first, then colour before infrared (a RealSense log has both).
+        chosen = min(images, key=lambda t: (self._calibration_beside(t) is None, _colour_rank(t)))
         if len(images) > 1:
             log.info(
                 "%s: %d image topics (%s); using %s (set image_topic to choose another)",

@@ -521,6 +521,21 @@ def ros1_log(path: Path, records: list[tuple[str, str, bytes, bytes, int]]) -> N
         w.finish()
 
 
+def test_a_realsense_log_is_read_from_its_colour_camera(tmp_path):
+    # The infrared topics come first in the file; depth is never the image topic.
+    records = []
+    for cam, enc in (("infra1", "mono8"), ("depth", "mono16"), ("aligned_depth_to_color", "mono16"), ("color", "rgb8")):
+        px = np.zeros((H, W, 3) if enc == "rgb8" else (H, W), np.uint16 if enc == "mono16" else np.uint8)
+        rect = "image_rect_raw" if cam != "color" else "image_raw"
+        records += [
+            ros1_record(f"/camera/{cam}/camera_info", ros1_camera_info(T0), T0),
+            ros1_record(f"/camera/{cam}/{rect}", ros1_image(T0, px, enc), T0),
+        ]
+    ros1_log(tmp_path / "d435.mcap", records)
+    src = McapFrameSource(tmp_path / "d435.mcap")
+    assert (src.image_topic, src.calibration_topic) == ("/camera/color/image_raw", "/camera/color/camera_info")
+
+
 def test_ros1_image_message_cut_short_fails_only_its_frame(tmp_path):
     img = ros1_image(T0, np.zeros((H, W), np.uint8), "mono8")
     records = []
