@@ -62,6 +62,25 @@ DEPTH_ENCODINGS = ("png", "16UC1", "mono16", "32FC1", *COMPRESSED_DEPTH_FORMATS)
 _COMPRESSED_DEPTH_HEADER = struct.Struct("<iff")
 
 
+#: Distortion models whose coefficients OpenCV's pinhole functions take (ROS CameraInfo's names), and the
+#: numbers of coefficients those take. Others (``equidistant``, fisheye ...) are refused unless all zero.
+DISTORTION_MODELS = ("", "plumb_bob", "rational_polynomial")
+OPENCV_DIST_SIZES = (0, 4, 5, 8, 12, 14)
+
+
+def distortion_problem(model: str, dist: np.ndarray) -> str | None:
+    """Why OpenCV's pinhole model cannot use these coefficients, or None when it can."""
+    dist = np.asarray(dist, dtype=np.float64).reshape(-1)
+    if model.lower() not in DISTORTION_MODELS and np.any(dist):
+        return (
+            f"distortion model {model!r} is not supported (plumb_bob or rational_polynomial, OpenCV's pinhole "
+            "model); rectify the images first (ROS: image_proc's image_rect topic) and use those"
+        )
+    if dist.size not in OPENCV_DIST_SIZES:
+        return f"{dist.size} distortion coefficients; OpenCV's model takes 4, 5, 8, 12 or 14"
+    return None
+
+
 @dataclass(frozen=True)
 class Camera:
     """Pinhole camera with optional distortion.
@@ -82,7 +101,7 @@ class Camera:
 
     def validate(self, where: str = "camera") -> Camera:
         """Raise :class:`CameraError` naming ``where`` unless K is a finite, positive-focal, upper-triangular
-        3x3 matrix with the last row (0, 0, 1)."""
+        3x3 matrix with the last row (0, 0, 1) and the distortion one OpenCV's pinhole model takes."""
         K = np.asarray(self.K, dtype=np.float64)
         if K.shape != (3, 3):
             raise CameraError(f"{where}: intrinsics K must be 3x3, got shape {K.shape}")
@@ -98,6 +117,9 @@ class Camera:
             raise CameraError(f"{where}: image size must be positive, got {self.width}x{self.height}")
         if self.dist.size and not np.all(np.isfinite(self.dist)):
             raise CameraError(f"{where}: distortion coefficients contain NaN or inf")
+        problem = distortion_problem(self.distortion_model, self.dist)
+        if problem:
+            raise CameraError(f"{where}: {problem}")
         return self
 
 

@@ -89,7 +89,7 @@ from scipy.spatial.transform import Rotation
 
 from batchpose.datasets import FrameSource, image_size, one_line
 from batchpose.errors import BatchposeError, CameraError, ConfigError, DataError, ImageError
-from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth
+from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth, distortion_problem
 from batchpose.poses import row_cam_from_model
 
 try:  # zstd is how chunks are usually compressed; its errors mean a corrupt chunk
@@ -874,7 +874,8 @@ class McapFrameSource(FrameSource):
 
         Raises:
             DataError: the message does not parse or lacks a field.
-            CameraError: the images are rectified and the message has no usable P.
+            CameraError: the images are rectified and the message has no usable P, or they are not and its
+                distortion is not one OpenCV's pinhole model takes (:func:`batchpose.frames.distortion_problem`).
         """
         msg = self.decode(schema, channel, message)
         try:
@@ -882,6 +883,9 @@ class McapFrameSource(FrameSource):
         except _FIELD_ERRORS as e:
             raise self._bad_field(schema, channel, message, e) from None
         if not self.rectified:
+            problem = distortion_problem(cal.model, cal.dist)
+            if problem:
+                raise CameraError(f"{self.path}:{channel.topic}: calibration at log time {message.log_time}: {problem}")
             return cal
         rect = cal.rectified()
         if rect is None:
@@ -1094,8 +1098,10 @@ class McapFrameSource(FrameSource):
 
     def describe(self) -> str:
         gt = ", ground truth" if self.gt_topic else ""
+        n = self.count()
         return (
-            f"mcap {self.path} ({self.count()} frames on {self.image_topic}, calibration {self.calibration_topic}{gt})"
+            f"mcap {self.path} ({n} frame{'s' if n != 1 else ''} on {self.image_topic}, "
+            f"calibration {self.calibration_topic}{gt})"
         )
 
 

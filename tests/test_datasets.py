@@ -171,6 +171,7 @@ def test_images_folder_with_distortion(tmp_path):
         ({"fx": "wide"}, ConfigError, "must be numbers"),
         ({"fx": -1.0}, CameraError, "focal lengths must be positive"),
         ({"fy": True}, ConfigError, "fy must be a number, got True"),  # YAML `yes` / `true` is not 1.0
+        ({"dist": [0.1, 0.01, 0.0, 0.0], "distortion_model": "equidistant"}, CameraError, "'equidistant' is not supp"),
     ],
 )
 def test_images_bad_intrinsics(tmp_path, change, error, match):

@@ -490,6 +490,38 @@ def test_rectified_images_take_the_projection_matrix(tmp_path, topic, rectified,
         np.testing.assert_array_equal(fr.camera.dist, [0.1, -0.05, 0.001, 0.002, 0.01])
 
 
+@pytest.mark.parametrize(
+    ("model", "dist", "topic", "match"),
+    [
+        (
+            "equidistant",
+            [0.1, 0.01, -0.002, 0.0003],
+            "/cam/image_raw",
+            "distortion model 'equidistant' is not supported",
+        ),
+        ("plumb_bob", [0.1, 0.01, 0.0], "/cam/image_raw", "3 distortion coefficients; OpenCV's model takes 4, 5,"),
+        ("equidistant", [0.1, 0.01, -0.002, 0.0003], "/cam/image_rect", None),  # rectified: P, no distortion
+        ("equidistant", [0.0, 0.0, 0.0, 0.0], "/cam/image_raw", None),  # no distortion to misread
+    ],
+)
+def test_a_distortion_opencv_cannot_apply_is_refused(tmp_path, model, dist, topic, match):
+    # A fisheye camera's four equidistant coefficients read as plumb_bob's k1, k2, p1, p2 would give poses
+    # that look fine and are wrong.
+    info = ros1_camera_info(T0, dist=dist)
+    info.distortion_model = model
+    records = [
+        ros1_record("/cam/camera_info", info, T0),
+        ros1_record(topic, ros1_image(T0, np.zeros((H, W), np.uint8), "mono8"), T0),
+    ]
+    ros1_log(tmp_path / "fisheye.mcap", records)
+    if match is None:
+        (fr,) = McapFrameSource(tmp_path / "fisheye.mcap")
+        assert fr.camera.validate() is fr.camera
+    else:
+        with pytest.raises(CameraError, match=rf"fisheye.mcap:/cam/camera_info: calibration at log time {T0}: {match}"):
+            list(McapFrameSource(tmp_path / "fisheye.mcap"))
+
+
 def test_rectified_images_without_a_projection_matrix_are_refused(tmp_path):
     img = ros1_image(T0, np.zeros((H, W), np.uint8), "mono8")
     info = ros1_camera_info(T0)

@@ -134,7 +134,13 @@ def _bad_logs(tmp_path):
             ("/cam/image", "sensor_msgs/Image", b"Header header\n!!\n", bytes(64), T0),
         ],
     )
+    fisheye = tmp_path / "fisheye.mcap"  # a calibration OpenCV's pinhole model would misread
+    info = ros1_camera_info(T0, dist=[0.1, 0.01, -0.002, 0.0003])
+    info.distortion_model = "equidistant"
+    img = ros1_image(T0, np.zeros((48, 64), np.uint8), "mono8")
+    ros1_log(fisheye, [ros1_record("/cam/camera_info", info, T0), ros1_record("/cam/image_raw", img, T0)])
     return [
+        (fisheye, "fisheye.mcap:/cam/camera_info: calibration at log time"),
         (bad_schema, "ros1.mcap:/cam/image: cannot read its ros1 schema 'sensor_msgs/Image'"),
         (not_mcap, "photo.mcap: not an MCAP file"),
         (cut, "cut.mcap: truncated MCAP"),
