@@ -541,9 +541,10 @@ def ros1_record(topic: str, msg, t: int) -> tuple[str, str, bytes, bytes, int]:
 
 
 def ros1_log(path: Path, records: list[tuple[str, str, bytes, bytes, int]]) -> None:
-    """A log laid out as `mcap convert` writes a ROS 1 bag, from :func:`ros1_record` tuples (any bytes)."""
+    """A log laid out as `mcap convert` writes a ROS 1 bag, from :func:`ros1_record` tuples (any bytes).
+    Its chunks are LZ4-compressed (:class:`Log` writes them plain, the ROS writers zstd)."""
     with open(path, "wb") as f:
-        w = Writer(f)
+        w = Writer(f, compression=CompressionType.LZ4)
         w.start(profile="ros1", library="test")
         channels = {}
         for topic, type_, definition, data, t in records:
