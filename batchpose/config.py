@@ -562,6 +562,12 @@ class EstimatorConfig:
     fine pass, no locator, and the refinement refines that pose only, one round (no per-template
     hypotheses, no turned copies). Such a full estimate costs about half as much at equal accuracy
     (reports/BENCHMARKS.md). 0: never."""
+    max_image_side_px: int = 0
+    """Frames whose longer side exceeds this are estimated at that size (resized, the camera scaled with
+    them; templates rendered for the scaled camera); poses, inlier points and residuals are reported for
+    the full frame. 0: full resolution. An HD camera's frames cost several times a 640x480 frame's time and
+    memory (reports/BENCHMARKS.md "Session 32"); the pixel thresholds here were set on 640x480 frames.
+    Fewer pixels also mean fewer keypoints on a small object: measure on your own frames."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     features: FeatureConfig = field(default_factory=FeatureConfig)
@@ -759,6 +765,10 @@ def validate(conf: EstimatorConfig, where: str = "pipeline") -> EstimatorConfig:
         raise ConfigError(f"{where}: min_confidence must be in [0, 1], got {conf.min_confidence}")
     if conf.strong_inliers < 0:
         raise ConfigError(f"{where}: strong_inliers must be >= 0, got {conf.strong_inliers}")
+    if conf.max_image_side_px != 0 and conf.max_image_side_px < 160:
+        raise ConfigError(
+            f"{where}: max_image_side_px must be 0 (full resolution) or >= 160, got {conf.max_image_side_px}"
+        )
     if not 0 < conf.gnc.gamma < 1:
         raise ConfigError(f"{where}: gnc.gamma must be in (0, 1), got {conf.gnc.gamma}")
     _check_ranges(conf, where)

@@ -29,7 +29,7 @@ from batchpose.correspondences import (
 from batchpose.depth import Surface, align_to_depth
 from batchpose.errors import BatchposeError, ImageError
 from batchpose.features import detect, detect_shapes, make_sift, to_gray
-from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image
+from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image, working_camera
 from batchpose.gnc_pnp import planar_alternative, solve_pose
 from batchpose.metrics import rotation_error_deg
 from batchpose.plane import Target, resting_faces, search_plane, stable_faces, support_plane
@@ -166,6 +166,8 @@ class PoseEstimator:
         # id(retry's record) -> (that record, the ok pose it replaced): the texture check falls back to the
         # replaced pose when it rejects the replacement (the current frame's; estimate_image resets it)
         self._replaced: dict[int, tuple[PoseRecord, PoseRecord]] = {}
+        # The frame as read, while estimate_frame works on a resized copy (max_image_side_px): its depth.
+        self._full_frame: Frame | None = None
 
     # -- per-object caches -------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -1038,7 +1040,9 @@ class PoseEstimator:
         contradicted: set[str] = set()
         t0 = time.perf_counter()
         try:
-            full = decode_depth(frame)
+            full = decode_depth(self._full_frame or frame)
+            if full is not None and full.shape != (frame.camera.height, frame.camera.width):  # max_image_side_px
+                full = cv2.resize(full, (frame.camera.width, frame.camera.height), interpolation=cv2.INTER_NEAREST)
         except ImageError as e:
             log.warning("%s: depth image not used: %s", frame.frame_id, e)
             for rec in todo:
@@ -1309,6 +1313,16 @@ class PoseEstimator:
             )
         return self._targets[name]
 
+    def _working_size(self, frame: Frame, rgb: np.ndarray) -> tuple[Frame, np.ndarray, np.ndarray]:
+        """The frame and its pixels at the size it is estimated at (``max_image_side_px``), with the x and y
+        scale factors; the frame itself when it is small enough."""
+        cam, scale = working_camera(frame.camera, self.conf.max_image_side_px)
+        if cam is frame.camera:
+            return frame, rgb, scale
+        self._full_frame = frame
+        small = cv2.resize(rgb, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+        return dataclasses.replace(frame, camera=cam), small, scale
+
     # -- batch call ------------------------------------------------------------------------------
     def estimate_frame(self, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
         """Estimate every object in a frame; never raises for bad input (failed records instead).
@@ -1318,8 +1332,10 @@ class PoseEstimator:
         unrelated sequences of frames.
         """
         t0 = time.perf_counter()
+        full, scale = frame, np.ones(2)
         try:
             rgb = decode_image(frame)
+            frame, rgb, scale = self._working_size(frame, rgb)
             t_decode = time.perf_counter() - t0
             if self.tracking():
                 records = self._estimate_tracked(rgb, frame, obj_names)
@@ -1351,6 +1367,11 @@ class PoseEstimator:
                                 stage.__name__.lstrip("_"), type(e).__name__, e)  # fmt: skip
                     log.debug("%s failed", stage.__name__, exc_info=True)
         self._replaced.clear()
+        self._full_frame = None
+        if frame is not full:  # back to the full frame's pixels
+            for rec in records:
+                rec.inliers_px = (np.asarray(rec.inliers_px, float) + 0.5) / scale - 0.5
+                rec.median_residual_px /= float(scale.mean())
         for rec in records:
             rec.scene_id, rec.im_id, rec.stamp_ns = frame.scene_id, frame.im_id, frame.stamp_ns
             rec.obj_id = self.obj_ids.get(rec.obj_name, rec.obj_id)

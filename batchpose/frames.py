@@ -123,6 +123,26 @@ class Camera:
         return self
 
 
+def working_camera(camera: Camera, max_side_px: int) -> tuple[Camera, np.ndarray]:
+    """The camera of a frame resized so that its longer side is at most ``max_side_px`` (0: no limit).
+
+    Returns:
+        The camera (the same object when no resize is needed: K scaled with OpenCV's pixel-centre convention,
+        distortion unchanged, as it acts on normalised coordinates) and (2,) the x and y scale factors.
+    """
+    w, h = camera.width, camera.height
+    if max_side_px <= 0 or max(w, h) <= max_side_px:
+        return camera, np.ones(2)
+    s = max_side_px / max(w, h)
+    w2, h2 = max(1, round(w * s)), max(1, round(h * s))
+    scale = np.array([w2 / w, h2 / h])
+    K = np.asarray(camera.K, dtype=np.float64).copy()
+    K[0, :3] *= scale[0]
+    K[1, :3] *= scale[1]
+    K[:2, 2] += 0.5 * scale - 0.5  # pixel centres at integer coordinates: (x + 0.5) s - 0.5
+    return Camera(K, w2, h2, camera.dist, camera.distortion_model), scale
+
+
 @dataclass(frozen=True)
 class ObjectPose:
     """A (ground-truth) pose of one object in one frame.

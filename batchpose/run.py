@@ -22,7 +22,7 @@ import yaml
 from batchpose import build_templates, estimate_poses, export_mcap, ingest_frames
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml, to_dict
 from batchpose.errors import CameraError, ConfigError
-from batchpose.frames import Camera
+from batchpose.frames import Camera, working_camera
 from batchpose.manifest import load_manifest
 from batchpose.mesh import load_mesh
 
@@ -145,18 +145,20 @@ def _check_annotated(gt: pd.DataFrame, objects: list[str], manifest: Path, limit
     log.warning("no ground truth in %s lists %s: not estimated (targets: annotations)", frames, ", ".join(missing))
 
 
-def _template_camera(frames_index: pd.DataFrame, manifest: Path) -> tuple[np.ndarray, int, int]:
-    """K, width and height of the first frame with a usable calibration (the templates are rendered with
-    it; frames with a broken one fail on their own when estimated)."""
+def _template_camera(frames_index: pd.DataFrame, manifest: Path, max_side_px: int) -> tuple[np.ndarray, int, int]:
+    """K, width and height of the first frame with a usable calibration, at the size frames are estimated at
+    (``max_image_side_px``): the templates are rendered with it; frames with a broken one fail on their own
+    when estimated."""
     first_error = None
     for row in frames_index.itertuples():
         K = np.asarray(row.K, float).reshape(3, 3)
         try:
-            Camera(K, int(row.width), int(row.height)).validate(str(row.frame_id))
+            cam = Camera(K, int(row.width), int(row.height)).validate(str(row.frame_id))
         except CameraError as e:
             first_error = first_error or e
             continue
-        return K, int(row.width), int(row.height)
+        cam, _ = working_camera(cam, max_side_px)
+        return cam.K, cam.width, cam.height
     raise CameraError(f"{manifest}: no frame has a usable camera calibration (first: {first_error})")
 
 
@@ -280,7 +282,7 @@ def main(
             raise ConfigError(f"{man.path}: the data set has no frames")
         if man.targets == "annotations":
             _check_annotated(pd.read_parquet(run_dir / "gt.parquet"), objects, man.path, limit)
-        K0, width, height = _template_camera(frames_index, man.path)
+        K0, width, height = _template_camera(frames_index, man.path, conf.max_image_side_px)
         models, lib_dirs, obj_ids = {}, {}, {}
         t0 = time.perf_counter()
         for spec in man.objects:
