@@ -37,6 +37,7 @@ def main(
             input_mcap=Path(frames_spec["path"]),
             image_topic=frames_spec.get("image_topic"),
             calibration_topic=frames_spec.get("calibration_topic"),
+            rectified=frames_spec.get("rectified"),
         )
     else:
         wanted = set(poses["frame_id"])

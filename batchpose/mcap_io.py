@@ -223,6 +223,8 @@ _READ_ERRORS = (McapError, ValueError, struct.error, ZstdError, RuntimeError)
 #: Errors of a decoded message without a field we need, or with one of the wrong type.
 _FIELD_ERRORS = (KeyError, TypeError, ValueError, AttributeError, binascii.Error)
 _MISSING = object()
+#: (log, image topic) pairs whose images were taken as rectified by their name, said once a process.
+_ANNOUNCED: set[tuple[str, str]] = set()
 
 
 class _BadMessage(DataError):
@@ -532,7 +534,8 @@ class McapFrameSource(FrameSource):
         #: Whether the images are rectified (distortion removed): their camera is the calibration's P, not
         #: K and D. None: as ROS's image_proc names them, ``image_rect``, ``image_rect_color``, ...
         self.rectified = looks_rectified(self.image_topic) if rectified is None else bool(rectified)
-        if self.rectified and rectified is None:
+        if self.rectified and rectified is None and (str(self.path), self.image_topic) not in _ANNOUNCED:
+            _ANNOUNCED.add((str(self.path), self.image_topic))
             log.info(
                 "%s:%s: rectified images (by the topic's name): using the calibration's P without distortion "
                 "(set rectified: false in the manifest's frames if they are not)",
@@ -1566,6 +1569,7 @@ def write_poses_mcap(
     *,
     image_topic: str | None = None,
     calibration_topic: str | None = None,
+    rectified: bool | None = None,
 ) -> Path:
     """Write the estimates as an MCAP for Foxglove (atomically: ``OUT.mcap.tmp`` then rename).
 
@@ -1586,6 +1590,8 @@ def write_poses_mcap(
         image_topic: image topic of ``input_mcap`` the records refer to (default: as
             :class:`McapFrameSource` chooses).
         calibration_topic: its calibration topic (default: the one beside the image topic).
+        rectified: whether its images are rectified, as the run read them (see :class:`McapFrameSource`):
+            the overlays are projected with the camera the poses were estimated with.
 
     Returns:
         ``out_path``.
@@ -1601,7 +1607,7 @@ def write_poses_mcap(
     try:
         with open(tmp, "wb") as f:
             if input_mcap is not None:
-                pw = _copy_with_poses(f, Path(input_mcap), rows, meshes, image_topic, calibration_topic)
+                pw = _copy_with_poses(f, Path(input_mcap), rows, meshes, image_topic, calibration_topic, rectified)
             else:
                 out = _Out(f)
                 out.w.add_metadata(METADATA_NAME, {"version": __version__})
@@ -1630,15 +1636,17 @@ def _copy_with_poses(
     meshes: Mapping[str, Any],
     image_topic: str | None,
     calibration_topic: str | None,
+    rectified: bool | None,
 ) -> _PoseWriter:
-    src = McapFrameSource(input_mcap, image_topic=image_topic, calibration_topic=calibration_topic)
+    src = McapFrameSource(input_mcap, image_topic=image_topic, calibration_topic=calibration_topic, rectified=rectified)
     clash = sorted(ch.topic for ch in src.channels.values() if ch.topic.startswith(OUTPUT_PREFIX))
     if clash:
         raise DataError(
             f"{input_mcap}: already holds batchpose output topics ({', '.join(clash[:3])}); "
             "write back into the original log instead"
         )
-    out = _Out(f, profile=src.profile)
+    # A ROS profile requires every channel in its encoding; the batchpose topics are protobuf and JSON.
+    out = _Out(f, profile="" if src.profile in ("ros1", "ros2") else src.profile)
     schema_ids: dict[int, int] = {}
     for sid, s in sorted(src.schemas.items()):
         schema_ids[sid] = out.w.register_schema(s.name, s.encoding, s.data)

@@ -531,6 +531,16 @@ def test_rectified_images_without_a_projection_matrix_are_refused(tmp_path):
     )
     with pytest.raises(CameraError, match=r"the images on /cam/image_rect are rectified but the calibration at log "):
         list(McapFrameSource(tmp_path / "rect.mcap"))
+    # Told they are not rectified, the run reads them with K and D, and so does the write-back.
+    assert len(list(McapFrameSource(tmp_path / "rect.mcap", rectified=False))) == 1
+    out = write_poses_mcap(
+        tmp_path / "poses.mcap", _rows([T0], np.random.default_rng(0), fail=set()), {"box": _box_glb()},
+        input_mcap=tmp_path / "rect.mcap", rectified=False,
+    )  # fmt: skip
+    with open(out, "rb") as f:
+        r = make_reader(f)
+        assert r.get_header().profile == ""  # ROS 1's profile allows ros1 channels only; poses are protobuf
+        assert "/batchpose/annotations" in {c.topic for c in r.get_summary().channels.values()}
 
 
 def ros1_record(topic: str, msg, t: int) -> tuple[str, str, bytes, bytes, int]:
