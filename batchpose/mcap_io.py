@@ -446,6 +446,8 @@ class _PendingFrame:
 
     frame: Frame
     stamp_ns_header: int
+    #: the image's header frame_id ("" when unknown): a depth image must be in the same camera frame
+    header_frame_id: str = ""
 
 
 class McapFrameSource(FrameSource):
@@ -954,8 +956,7 @@ class McapFrameSource(FrameSource):
         if pending is not None:
             yield self._with_depth(pending, depths)
 
-    @staticmethod
-    def _with_depth(pending: _PendingFrame, depths: dict[int, _Image]) -> Frame:
+    def _with_depth(self, pending: _PendingFrame, depths: dict[int, _Image]) -> Frame:
         frame, stamp = pending.frame, pending.stamp_ns_header
         if not depths:
             return frame
@@ -963,6 +964,13 @@ class McapFrameSource(FrameSource):
         if abs(best - stamp) > DEPTH_MAX_GAP_NS:
             return frame
         d = depths[best]
+        if d.frame_id and pending.header_frame_id and d.frame_id != pending.header_frame_id:
+            # e.g. a RealSense's depth/image_rect_raw: the depth camera's own pixels, not the colour camera's
+            raise DataError(
+                f"{self.path}:{self.depth_topic}: depth images are in frame {d.frame_id!r}, the images on "
+                f"{self.image_topic} in {pending.header_frame_id!r}; the depth must be registered to the colour "
+                "camera (a RealSense driver's aligned_depth_to_color topic, or depth_image_proc's register)"
+            )
         return dataclasses.replace(
             frame, depth_format=d.fmt, depth_data=d.data, depth_scale_m=DEPTH_UNITS_M.get(d.fmt, 1.0), depth_step=d.step
         )
@@ -1052,7 +1060,7 @@ class McapFrameSource(FrameSource):
                 source=source,
                 error=error,
             )
-            held = _PendingFrame(frame, img.stamp_ns if img is not None else t)
+            held = _PendingFrame(frame, img.stamp_ns if img is not None else t, img.frame_id if img is not None else "")
             index += 1
         if held is not None:
             yield self._with_ground_truth(held, gts, with_depth)
@@ -1072,7 +1080,7 @@ class McapFrameSource(FrameSource):
                 im_id=gt.im_id if gt.im_id is not None else frame.im_id,
                 gt=gt.poses,
             )
-        return _PendingFrame(frame, held.stamp_ns_header) if with_depth else frame
+        return dataclasses.replace(held, frame=frame) if with_depth else frame
 
     def _warn_once(self, topic: str, log_time: int, text: str) -> None:
         """Warn about the message at ``log_time`` once per source, however often the frames are read."""

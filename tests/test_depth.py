@@ -251,12 +251,13 @@ def test_shared_ycbv_dev_depth_frames_decode():
 # ------------------------------------------------------------------------------------------------ MCAP
 
 
-def _raw_depth(t_header: int, mm: np.ndarray, encoding: str = "16UC1"):
+def _raw_depth(t_header: int, mm: np.ndarray, encoding: str = "16UC1", frame_id: str = "cam_optical"):
+    """Depth registered to tests.test_mcap_io's images: in their camera frame, ``cam_optical``."""
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
     data = mm.astype("<u2") if encoding == "16UC1" else (mm / 1000.0).astype("<f4")
     m = RawImage(
-        frame_id="cam",
+        frame_id=frame_id,
         width=mm.shape[1],
         height=mm.shape[0],
         encoding=encoding,
@@ -341,6 +342,24 @@ def test_ros_compressed_depth_topic(tmp_path, encoding):
         assert out[5, 7] == 0.0
         # 16UC1 holds whole millimetres; 32FC1's inverse depth steps are depth^2 / 10100 m (0.9 mm at 3 m)
         np.testing.assert_allclose(out, depth, atol=0.5e-3 if encoding == "16UC1" else 0.9e-3)
+
+
+def test_mcap_depth_in_another_camera_frame_is_refused(tmp_path):
+    """A RealSense log's depth/image_rect_raw is the depth camera's own image, not registered to the colour
+    one; used as depth_topic it would put every depth reading at the wrong pixel."""
+    from batchpose.datasets import open_frames
+    from batchpose.errors import DataError
+    from tests.test_mcap_io import T0, H, Log, W, _calib, _cimg, _enc, _img
+
+    log_ = Log(tmp_path / "d435.mcap")
+    log_.proto("/cam/calibration", _calib(T0), T0)
+    log_.proto("/cam/image", _cimg(T0, _enc(_img(np.random.default_rng(0)), ".png"), "png"), T0)
+    log_.proto("/cam/depth_raw", _raw_depth(T0, np.full((H, W), 700, np.uint16), frame_id="depth_optical"), T0 + 1)
+    log_.close()
+    spec = {"format": "mcap", "path": "d435.mcap", "depth_topic": "/cam/depth_raw"}
+    with pytest.raises(DataError, match=r"/cam/depth_raw: depth images are in frame 'depth_optical', the images on "
+                       r"/cam/image in 'cam_optical'; the depth must be registered to the colour camera"):  # fmt: skip
+        list(open_frames(spec, tmp_path))
 
 
 def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
