@@ -245,13 +245,15 @@ class _Calib:
     model: str
     #: (3, 4) projection matrix of the rectified image (all zero when the message has none).
     P: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((3, 4)))
+    #: the camera frame it describes ("" when the message does not say)
+    frame_id: str = ""
 
     def rectified(self) -> _Calib | None:
         """The camera of the rectified image: ``P``'s left 3x3 as K, no distortion; None without a ``P``."""
         K = self.P[:, :3]
         if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and K[2, 2] == 1):
             return None
-        return _Calib(K=K.copy(), width=self.width, height=self.height, dist=np.zeros(0), model="", P=self.P)
+        return dataclasses.replace(self, K=K.copy(), dist=np.zeros(0), model="")
 
 
 @dataclass(frozen=True)
@@ -311,9 +313,16 @@ def _stamp_ns(msg: Any) -> int:
     return int(ts.seconds) * 1_000_000_000 + int(ts.nanos)
 
 
-def _frame_id_of(msg: Any) -> str:
+def _frame_id_of(msg: Any, default: Any = _MISSING) -> str:
+    """The message's camera frame: ROS's header.frame_id, Foxglove's frame_id ("" when it has none).
+
+    Raises:
+        KeyError: a ROS header without frame_id, and no ``default``.
+    """
     header = _field(msg, "header", default=None)
-    return str(_field(header, "frame_id") if header is not None else _field(msg, "frame_id", default=""))
+    if header is not None:
+        return str(_field(header, "frame_id", default=default))
+    return str(_field(msg, "frame_id", default=""))
 
 
 def _bytes(data: Any) -> bytes:
@@ -336,6 +345,7 @@ def _to_calib(msg: Any) -> _Calib:
         dist=dist,
         model=str(_field(msg, "distortion_model", default="")),
         P=P.reshape(3, 4) if P.size == 12 else np.zeros((3, 4)),
+        frame_id=_frame_id_of(msg, default=""),
     )
 
 
@@ -986,7 +996,7 @@ class McapFrameSource(FrameSource):
         cal: _Calib | None = None
         gts: dict[int, _GroundTruth] = {}
         index, last_t, dup = 0, None, 0
-        warned_early = warned_size = False
+        warned_early = warned_size = warned_frame = False
         # The last image's frame waits for the next later log time: its ground truth may be logged after it.
         held: _PendingFrame | None = None
         for schema, channel, message in self.iter_raw(topics):
@@ -1021,6 +1031,16 @@ class McapFrameSource(FrameSource):
             except _BadMessage as e:  # one bad message costs its frame (bad_image), not the batch
                 self._warn_once(channel.topic, t, f"{e}; that frame fails as bad_image")
                 error, img = ImageError(str(e)), None
+            if not warned_frame and img is not None and img.frame_id and c.frame_id and img.frame_id != c.frame_id:
+                log.warning(
+                    "%s: images are in frame %r, the calibration on %s describes frame %r: check that it is this "
+                    "camera's (set calibration_topic)",
+                    source,
+                    img.frame_id,
+                    self.calibration_topic,
+                    c.frame_id,
+                )
+                warned_frame = True
             cam = _camera(c, img)
             size = None
             if img is not None and img.raw:

@@ -1043,6 +1043,21 @@ def test_image_message_that_does_not_parse_fails_only_its_frame(tmp_path, caplog
     assert _status_times(out) == [(T0, "ok"), (T0 + DT, "too_few_matches"), (T0 + 2 * DT, "ok")]
 
 
+def test_calibration_of_another_camera_frame_is_warned_about_once(tmp_path, caplog):
+    # A calibration_topic set to the wrong camera of the same size: the numbers would look fine.
+    rng = np.random.default_rng(12)
+    log_ = Log(tmp_path / "two_cams.mcap")
+    for i in range(3):
+        t = T0 + i * DT
+        log_.proto("/left/calibration", _calib(t, frame_id="right_optical"), t)
+        log_.proto("/left/image", _cimg(t, _enc(_img(rng)), "png", frame_id="left_optical"), t)
+    log_.close()
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        frames = list(McapFrameSource(tmp_path / "two_cams.mcap"))
+    assert len(frames) == 3 and all(f.error is None for f in frames)
+    assert caplog.text.count("images are in frame 'left_optical', the calibration on /left/calibration describes") == 1
+
+
 def test_image_size_differs_from_calibration(tmp_path):
     rgb = _img(np.random.default_rng(12))  # 64x48
     p = tmp_path / "size.mcap"
