@@ -4,11 +4,14 @@ Reading (:class:`McapFrameSource`): images from ``foxglove.CompressedImage`` (jp
 ``foxglove.RawImage`` (the encodings of :data:`batchpose.frames.RAW_ENCODINGS`: rgb8, bgr8, rgba8, bgra8,
 mono8, mono16, Bayer mosaics, 4:2:2 YUV), ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage``
 (ROS 2 cdr) or ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` (ROS 1, as ``mcap convert`` writes
-a bag; big-endian 16-bit images are byte-swapped); calibration from ``foxglove.CameraCalibration``,
-``sensor_msgs/msg/CameraInfo`` or ``sensor_msgs/CameraInfo``; foxglove schemas in protobuf or in
+a bag; big-endian 16-bit images are byte-swapped), or ``foxglove.CompressedVideo`` (h264, h265, vp9, av1;
+decoded in log order with FFmpeg through PyAV, one frame a message); calibration from
+``foxglove.CameraCalibration``, ``sensor_msgs/msg/CameraInfo`` or ``sensor_msgs/CameraInfo``; foxglove
+schemas in protobuf or in
 Foxglove's JSON encoding (bytes as base64, times as ``{sec, nsec}``). Each image uses the latest
 calibration logged at or before it (images logged before the first calibration use the first one, with a
-warning). Image bytes are never decoded here (a big-endian 16-bit image is only byte-swapped):
+warning). Image bytes are never decoded here (a big-endian 16-bit image is only byte-swapped; video is
+decoded, as no frame of it can be decoded alone, and its frames are rgb8):
 ``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
 stride. With a ``depth_topic``, each image gets the depth image (16UC1 / mono16 in mm, 32FC1 in m, or a
 16-bit PNG in mm) whose header stamp is nearest its own, within :data:`DEPTH_MAX_GAP_NS`. An image
@@ -143,7 +146,11 @@ IMAGE_SCHEMAS = {
     "sensor_msgs/msg/Image": "raw",
     "sensor_msgs/CompressedImage": "compressed",
     "sensor_msgs/Image": "raw",
+    "foxglove.CompressedVideo": "video",
 }
+#: foxglove.CompressedVideo formats and the FFmpeg (PyAV) decoder of each; AV1 through dav1d, FFmpeg's own
+#: AV1 decoder needing hardware.
+VIDEO_DECODERS = {"h264": "h264", "h265": "hevc", "vp9": "vp9", "av1": "libdav1d"}
 CALIBRATION_SCHEMAS = ("foxglove.CameraCalibration", "sensor_msgs/msg/CameraInfo", "sensor_msgs/CameraInfo")
 
 GT_SCHEMA_NAME = "batchpose.GroundTruthPoses"
@@ -354,6 +361,9 @@ def _to_image(msg: Any, kind: str) -> _Image:
     if kind == "compressed":
         fmt = _compressed_format(str(_field(msg, "format")))
         return _Image(fmt, data, 0, 0, 0, _frame_id_of(msg), _stamp_ns(msg), raw=False)
+    if kind == "video":  # one frame of a stream: decoded in log order by _VideoDecoder
+        fmt = "video/" + str(_field(msg, "format")).lower().strip()
+        return _Image(fmt, data, 0, 0, 0, _frame_id_of(msg), _stamp_ns(msg), raw=False)
     encoding = str(_field(msg, "encoding"))
     spec = RAW_ENCODINGS.get(encoding)
     if _field(msg, "is_bigendian", default=0) and spec is not None and np.dtype(spec[1]).itemsize > 1:
@@ -379,6 +389,53 @@ def _colour_rank(topic: str) -> int:
     if any(re.fullmatch(r"infra\d*|ir\d*|mono|thermal|nir", w) for w in words):
         return 2
     return 1
+
+
+class _VideoDecoder:
+    """Decodes a ``foxglove.CompressedVideo`` topic message by message, in log order (FFmpeg through PyAV).
+
+    Each message holds one frame (as Foxglove's schema requires; no B-frames), decoded with FFmpeg's low-delay
+    flag so that it comes out of its own message. A message that gives no picture (a stream that starts
+    between keyframes, or broken data) fails its frame only.
+    """
+
+    def __init__(self, where: str) -> None:
+        self.where = where
+        self._ctx: Any = None
+        self._fmt = ""
+
+    def decode(self, img: _Image, log_time: int) -> _Image:
+        """The message's frame as a raw rgb8 image.
+
+        Raises:
+            _BadMessage: an unsupported format, or no picture from this message.
+        """
+        import av  # noqa: PLC0415 - only logs with video need FFmpeg
+
+        fmt = img.fmt.removeprefix("video/")
+        if fmt not in VIDEO_DECODERS:
+            raise _BadMessage(
+                f"{self.where}: video format {fmt!r} at log time {log_time} is not supported "
+                f"(expected one of {', '.join(VIDEO_DECODERS)})"
+            )
+        if self._ctx is None or fmt != self._fmt:
+            self._ctx = av.CodecContext.create(VIDEO_DECODERS[fmt], "r")
+            self._ctx.flags |= av.codec.context.Flags.low_delay
+            self._fmt = fmt
+        try:
+            frames = self._ctx.decode(av.Packet(img.data))
+        except av.error.FFmpegError as e:
+            frames, why = [], one_line(e)
+        else:
+            why = "a delayed picture: reordered B-frames, which CompressedVideo does not allow" if not frames else ""
+        if not frames:
+            raise _BadMessage(
+                f"{self.where}: no picture from the {fmt} video message at log time {log_time} ({why}; a stream "
+                "that starts between keyframes decodes from its first keyframe)"
+            )
+        rgb = frames[-1].to_ndarray(format="rgb24")
+        h, w = rgb.shape[:2]
+        return _Image("rgb8", rgb.tobytes(), w, h, 3 * w, img.frame_id, img.stamp_ns, raw=True)
 
 
 def looks_rectified(topic: str) -> bool:
@@ -715,8 +772,8 @@ class McapFrameSource(FrameSource):
             listing = ", ".join(f"{t} ({s or 'no schema'})" for t, s in topics.items())
             raise DataError(
                 f"{self.path}: no image topic (expected messages with schema foxglove.CompressedImage, "
-                f"foxglove.RawImage, sensor_msgs/msg/Image or sensor_msgs/msg/CompressedImage (ROS 1: "
-                f"sensor_msgs/Image, sensor_msgs/CompressedImage); "
+                "foxglove.RawImage, foxglove.CompressedVideo, sensor_msgs/msg/Image or "
+                "sensor_msgs/msg/CompressedImage (ROS 1: sensor_msgs/Image, sensor_msgs/CompressedImage); "
                 f"topics: {listing or 'none'})"
             )
         # With a calibration beside it first, then colour before infrared (a RealSense log has both).
@@ -997,6 +1054,7 @@ class McapFrameSource(FrameSource):
         gts: dict[int, _GroundTruth] = {}
         index, last_t, dup = 0, None, 0
         warned_early = warned_size = warned_frame = False
+        video = _VideoDecoder(source) if IMAGE_SCHEMAS.get(self._topics()[self.image_topic]) == "video" else None
         # The last image's frame waits for the next later log time: its ground truth may be logged after it.
         held: _PendingFrame | None = None
         for schema, channel, message in self.iter_raw(topics):
@@ -1028,6 +1086,8 @@ class McapFrameSource(FrameSource):
             img: _Image | None
             try:
                 img = self.image(schema, channel, message)
+                if video is not None:
+                    img = video.decode(img, t)
             except _BadMessage as e:  # one bad message costs its frame (bad_image), not the batch
                 self._warn_once(channel.topic, t, f"{e}; that frame fails as bad_image")
                 error, img = ImageError(str(e)), None

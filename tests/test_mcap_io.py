@@ -18,6 +18,7 @@ import pytest
 import trimesh
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
@@ -1041,6 +1042,60 @@ def test_image_message_that_does_not_parse_fails_only_its_frame(tmp_path, caplog
     rows = _rows([f.stamp_ns for f in frames], rng, fail={1})
     write_poses_mcap(out, rows, {"box": _box_glb()}, input_mcap=p)
     assert _status_times(out) == [(T0, "ok"), (T0 + DT, "too_few_matches"), (T0 + 2 * DT, "ok")]
+
+
+def encode_video(images: list[np.ndarray], codec: str = "libx264", gop: int = 5) -> list[bytes]:
+    """RGB images as a video stream, one packet (one CompressedVideo message) an image, no B-frames."""
+    import fractions
+
+    import av
+
+    h, w = images[0].shape[:2]
+    enc = av.CodecContext.create(codec, "w")
+    enc.width, enc.height, enc.pix_fmt = w, h, "yuv420p"
+    enc.time_base, enc.gop_size = fractions.Fraction(1, 30), gop
+    enc.options = {"tune": "zerolatency", "crf": "12"} if codec == "libx264" else {"lag-in-frames": "0"}
+    packets = []
+    for i, img in enumerate([*images, None]):
+        frame = None
+        if img is not None:
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format="rgb24")
+            frame.pts = i
+        packets += [bytes(p) for p in enc.encode(frame)]
+    assert len(packets) == len(images)
+    return packets
+
+
+def _video_msg(t: int, data: bytes, fmt: str = "h264") -> CompressedVideo:
+    m = CompressedVideo(frame_id="cam_optical", format=fmt, data=data)
+    m.timestamp.FromNanoseconds(t)
+    return m
+
+
+@pytest.mark.parametrize(("codec", "fmt"), [("libx264", "h264"), ("libvpx-vp9", "vp9")])
+def test_foxglove_compressed_video(tmp_path, codec, fmt):
+    # Foxglove's CompressedVideo, recorded from the middle of a stream: the frames before the first keyframe
+    # fail on their own, every later one decodes to its own image.
+    rng = np.random.default_rng(13)
+    base = cv2.resize(rng.integers(0, 256, (6, 8, 3), np.uint8), (W, H), interpolation=cv2.INTER_CUBIC)
+    images = [np.roll(base, 2 * i, axis=1) for i in range(12)]
+    packets = encode_video(images, codec, gop=5)
+    log_ = Log(tmp_path / "video.mcap")
+    for i in range(2, 12):  # starts two frames into the stream: frames 2-4 precede the keyframe at 5
+        t = T0 + i * DT
+        log_.proto("/cam/calibration", _calib(t), t)
+        log_.proto("/cam/video", _video_msg(t, packets[i], fmt), t)
+    log_.close()
+    src = McapFrameSource(tmp_path / "video.mcap")
+    assert src.image_topic == "/cam/video" and src.count() == 10
+    frames = list(src)
+    assert [f.error is not None for f in frames] == [True] * 3 + [False] * 7
+    with pytest.raises(ImageError, match=rf"video.mcap:/cam/video: no picture from the {fmt} video message at log"):
+        decode_image(frames[0])
+    for i, fr in zip(range(5, 12), frames[3:], strict=True):
+        assert (fr.image_format, fr.camera.width, fr.camera.height, fr.stamp_ns) == ("rgb8", W, H, T0 + i * DT)
+        err = [np.abs(decode_image(fr).astype(int) - images[j]).mean() for j in (i, i - 1)]
+        assert err[0] < 10 and err[0] < 0.5 * err[1], err  # lossy (4:2:0 colour), but this image, not the last
 
 
 def test_calibration_of_another_camera_frame_is_warned_about_once(tmp_path, caplog):

@@ -12,8 +12,10 @@ import pandas as pd
 import pytest
 from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 from mcap.reader import make_reader
 from mcap.writer import Writer
+from mcap_protobuf.schema import register_schema
 
 from batchpose import convert, run
 from tests.conftest import ROOT
@@ -24,6 +26,7 @@ from tests.test_mcap_io import (
     _enc,
     _mosaic,
     _simple_log,
+    encode_video,
     ros1_camera_info,
     ros1_image,
     ros1_log,
@@ -105,6 +108,51 @@ def test_run_on_a_ros1_bayer_log(tmp_path, cache_dir):
         outp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
     assert {t for t, _, _ in inp} == {"/camera/image_raw", "/camera/camera_info", "/ground_truth/poses"}
     assert set(inp) <= set(outp) and "/batchpose/tf" in {t for t, _, _ in outp}
+    frames = pd.read_csv(out / "report" / "frames.csv")
+    gel = frames[frames["obj_name"] == "009_gelatin_box"]
+    assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all(), gel[["status", "add_m"]]
+
+
+@pytest.mark.slow
+def test_run_on_a_foxglove_video_log(tmp_path, cache_dir):
+    # The demo frames as Foxglove's CompressedVideo (H.264, as a recorder that saves space writes them).
+    fox = convert.main(ROOT / "demo_data" / "ycbv", tmp_path / "demo.mcap", fmt="ycbv")
+    with open(fox, "rb") as f:
+        msgs = list(make_reader(f).iter_messages())
+    images = [
+        cv2.imdecode(np.frombuffer(CompressedImage.FromString(m.data).data, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+        for _, ch, m in msgs
+        if ch.topic == "/camera/image"
+    ]
+    packets = iter(encode_video(images, gop=30))
+    log_path = tmp_path / "video.mcap"
+    with open(log_path, "wb") as f:
+        w = Writer(f)
+        w.start(library="test")
+        ids: dict[str, int] = {}
+        for schema, ch, m in msgs:
+            if ch.topic == "/camera/depth":
+                continue
+            data, topic = m.data, ch.topic
+            if topic == "/camera/image":
+                img = CompressedImage.FromString(m.data)
+                video = CompressedVideo(frame_id=img.frame_id, format="h264", data=next(packets))
+                video.timestamp.CopyFrom(img.timestamp)
+                data, topic = video.SerializeToString(), "/camera/video"
+                if topic not in ids:
+                    ids[topic] = w.register_channel(topic, "protobuf", register_schema(w, CompressedVideo))
+            elif topic not in ids:
+                ids[topic] = w.register_channel(
+                    topic, ch.message_encoding, w.register_schema(schema.name, schema.encoding, schema.data)
+                )
+            w.add_message(ids[topic], log_time=m.log_time, data=data, publish_time=m.publish_time)
+        w.finish()
+    out = run.main(PIPELINE, _manifest(tmp_path, log_path), tmp_path / "run", cache_dir=cache_dir, jobs=1)
+    with open(log_path, "rb") as f:
+        inp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
+    with open(out / "poses.mcap", "rb") as f:
+        outp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
+    assert set(inp) <= set(outp) and "/batchpose/annotations" in {t for t, _, _ in outp}
     frames = pd.read_csv(out / "report" / "frames.csv")
     gel = frames[frames["obj_name"] == "009_gelatin_box"]
     assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all(), gel[["status", "add_m"]]
