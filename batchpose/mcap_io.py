@@ -7,11 +7,10 @@ mono8, mono16, Bayer mosaics, 4:2:2 YUV), ``sensor_msgs/msg/Image`` and ``sensor
 a bag; big-endian 16-bit images are byte-swapped), or ``foxglove.CompressedVideo`` (h264, h265, vp9, av1;
 decoded in log order with FFmpeg through PyAV, one frame a message); calibration from
 ``foxglove.CameraCalibration``, ``sensor_msgs/msg/CameraInfo`` or ``sensor_msgs/CameraInfo``; foxglove
-schemas in protobuf or in
-Foxglove's JSON encoding (bytes as base64, times as ``{sec, nsec}``). Each image uses the latest
-calibration logged at or before it (images logged before the first calibration use the first one, with a
-warning). Image bytes are never decoded here (a big-endian 16-bit image is only byte-swapped; video is
-decoded, as no frame of it can be decoded alone, and its frames are rgb8):
+schemas in protobuf or in Foxglove's JSON encoding (bytes as base64, times as ``{sec, nsec}``). Each image
+uses the latest calibration logged at or before it (images logged before the first calibration use the
+first one, with a warning). Image bytes are never decoded here (a big-endian 16-bit image is only
+byte-swapped; video is decoded, as no frame of it can be decoded alone, and its frames are rgb8):
 ``Frame.image_format`` is the compressed format or the raw encoding, ``Frame.raw_step`` the row
 stride. With a ``depth_topic``, each image gets the depth image (16UC1 / mono16 in mm, 32FC1 in m, or a
 16-bit PNG in mm) whose header stamp is nearest its own, within :data:`DEPTH_MAX_GAP_NS`. An image
