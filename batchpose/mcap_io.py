@@ -229,7 +229,8 @@ _READ_ERRORS = (McapError, ValueError, struct.error, ZstdError, RuntimeError)
 #: Errors of a decoded message without a field we need, or with one of the wrong type.
 _FIELD_ERRORS = (KeyError, TypeError, ValueError, AttributeError, binascii.Error)
 _MISSING = object()
-#: (log, image topic) pairs whose images were taken as rectified by their name, said once a process.
+#: What was said of a log once a process: (log, image topic) taken as rectified by its name, (log, "") the
+#: image topic chosen among several.
 _ANNOUNCED: set[tuple[str, str]] = set()
 
 
@@ -777,7 +778,8 @@ class McapFrameSource(FrameSource):
             )
         # With a calibration beside it first, then colour before infrared (a RealSense log has both).
         chosen = min(images, key=lambda t: (self._calibration_beside(t) is None, _colour_rank(t)))
-        if len(images) > 1:
+        if len(images) > 1 and (str(self.path), "") not in _ANNOUNCED:
+            _ANNOUNCED.add((str(self.path), ""))
             log.info(
                 "%s: %d image topics (%s); using %s (set image_topic to choose another)",
                 self.path,
