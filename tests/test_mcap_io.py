@@ -1054,7 +1054,12 @@ def encode_video(images: list[np.ndarray], codec: str = "libx264", gop: int = 5)
     enc = av.CodecContext.create(codec, "w")
     enc.width, enc.height, enc.pix_fmt = w, h, "yuv420p"
     enc.time_base, enc.gop_size = fractions.Fraction(1, 30), gop
-    enc.options = {"tune": "zerolatency", "crf": "12"} if codec == "libx264" else {"lag-in-frames": "0"}
+    enc.options = {  # each encoder's way to no B-frames / no look-ahead, and a high quality
+        "libx264": {"tune": "zerolatency", "crf": "12"},
+        "libx265": {"tune": "zerolatency", "crf": "12", "x265-params": "log-level=none"},
+        "libvpx-vp9": {"lag-in-frames": "0"},
+        "libsvtav1": {"svtav1-params": "pred-struct=1", "crf": "12"},
+    }[codec]
     packets = []
     for i, img in enumerate([*images, None]):
         frame = None
@@ -1072,7 +1077,9 @@ def _video_msg(t: int, data: bytes, fmt: str = "h264") -> CompressedVideo:
     return m
 
 
-@pytest.mark.parametrize(("codec", "fmt"), [("libx264", "h264"), ("libvpx-vp9", "vp9")])
+@pytest.mark.parametrize(
+    ("codec", "fmt"), [("libx264", "h264"), ("libx265", "h265"), ("libvpx-vp9", "vp9"), ("libsvtav1", "av1")]
+)
 def test_foxglove_compressed_video(tmp_path, codec, fmt):
     # Foxglove's CompressedVideo, recorded from the middle of a stream: the frames before the first keyframe
     # fail on their own, every later one decodes to its own image.
