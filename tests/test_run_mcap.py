@@ -15,7 +15,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.CompressedVideo_pb2 import CompressedVideo
 from mcap.reader import make_reader
 from mcap.writer import Writer
-from mcap_protobuf.schema import register_schema
+from mcap_protobuf.schema import build_file_descriptor_set
 
 from batchpose import convert, run
 from tests.conftest import ROOT
@@ -47,115 +47,116 @@ def _manifest(tmp_path, log_path) -> str:
     return str(m)
 
 
-@pytest.mark.slow
-def test_run_on_converted_log_keeps_input_and_adds_poses(tmp_path, cache_dir):
-    log_path = convert.main(ROOT / "demo_data" / "ycbv", tmp_path / "demo.mcap", fmt="ycbv")
+def _demo_log(tmp_path) -> Path:
+    """The bundled demo frames converted to a log (Foxglove PNG images, calibration, depth, ground truth)."""
+    return convert.main(ROOT / "demo_data" / "ycbv", tmp_path / "demo.mcap", fmt="ycbv")
+
+
+def _rewritten(src: Path, dst: Path, rewrite, profile: str = "") -> Path:
+    """A copy of the log ``src`` with each message through ``rewrite(schema, channel, message)``: None drops
+    it, else (topic, schema name, schema encoding, schema data, message encoding, message data)."""
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        w = Writer(g)
+        w.start(profile=profile, library="test")
+        ids: dict[str, int] = {}
+        for schema, ch, m in make_reader(f).iter_messages():
+            rec = rewrite(schema, ch, m)
+            if rec is None:
+                continue
+            topic, name, schema_encoding, schema_data, encoding, data = rec
+            if topic not in ids:
+                ids[topic] = w.register_channel(topic, encoding, w.register_schema(name, schema_encoding, schema_data))
+            w.add_message(ids[topic], log_time=m.log_time, data=data, publish_time=m.publish_time)
+        w.finish()
+    return dst
+
+
+def _run_keeps_the_log_and_finds_the_gelatin_box(tmp_path, log_path, cache_dir) -> tuple[set[str], set[str]]:
+    """The whole job on the log: its messages are in poses.mcap byte for byte and the gelatin box's three
+    poses are within 0.1 d. Returns the input's and the output's topics."""
     out = run.main(PIPELINE, _manifest(tmp_path, log_path), tmp_path / "run", cache_dir=cache_dir, jobs=1)
     with open(log_path, "rb") as f:
         inp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
     with open(out / "poses.mcap", "rb") as f:
         outp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
     assert set(inp) <= set(outp)
-    topics = {t for t, _, _ in outp}
-    assert {"/camera/image", "/camera/calibration"} <= topics
-    assert len(topics) > 3  # pose topics were added
     frames = pd.read_csv(out / "report" / "frames.csv")
     gel = frames[frames["obj_name"] == "009_gelatin_box"]
-    assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all()
+    assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all(), gel[["status", "add_m"]]
+    return {t for t, _, _ in inp}, {t for t, _, _ in outp}
 
 
-def _as_ros1_bayer(src: Path, dst: Path) -> None:
-    """The converted demo log as a ROS 1 colour-filter camera records it: bayer_rggb8 sensor_msgs/Image and
-    sensor_msgs/CameraInfo (ros1 encoding), the ground truth kept as it is (JSON), no depth."""
-    with open(src, "rb") as f, open(dst, "wb") as g:
-        w = Writer(g)
-        w.start(profile="ros1", library="test")
-        ids: dict[str, int] = {}
-        for schema, ch, m in make_reader(f).iter_messages():
-            t = m.log_time
-            if ch.topic == "/camera/depth":
-                continue
-            if ch.topic == "/camera/calibration":
-                cal = CameraCalibration.FromString(m.data)
-                info = ros1_camera_info(t, np.reshape(cal.K, (3, 3)), cal.width, cal.height, cal.D)
-                rec = ros1_record("/camera/camera_info", info, t)
-            elif ch.topic == "/camera/image":
-                png = CompressedImage.FromString(m.data).data
-                rgb = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
-                rec = ros1_record("/camera/image_raw", ros1_image(t, _mosaic(rgb, "rggb"), "bayer_rggb8"), t)
-            else:
-                rec = (ch.topic, schema.name, schema.data, m.data, t)
-            topic, type_, definition, data, _ = rec
-            if topic not in ids:
-                encoding = "ros1" if topic.startswith("/camera/") else ch.message_encoding
-                sid = w.register_schema(type_, "ros1msg" if encoding == "ros1" else schema.encoding, definition)
-                ids[topic] = w.register_channel(topic, encoding, sid)
-            w.add_message(ids[topic], log_time=t, data=data, publish_time=t)
-        w.finish()
+def _rgb(m) -> np.ndarray:
+    """The RGB pixels of a converted log's /camera/image message."""
+    png = CompressedImage.FromString(m.data).data
+    return cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
+
+
+@pytest.mark.slow
+def test_run_on_converted_log_keeps_input_and_adds_poses(tmp_path, cache_dir):
+    _, topics = _run_keeps_the_log_and_finds_the_gelatin_box(tmp_path, _demo_log(tmp_path), cache_dir)
+    assert {"/camera/image", "/camera/calibration"} <= topics
+    assert len(topics) > 3  # pose topics were added
+
+
+def _as_ros1_bayer(schema, ch, m):
+    """A converted demo log's message as a ROS 1 colour-filter camera records it: bayer_rggb8
+    sensor_msgs/Image and sensor_msgs/CameraInfo (ros1 encoding), the ground truth kept as it is (JSON), no
+    depth (a :func:`_rewritten` rewrite)."""
+    t = m.log_time
+    if ch.topic == "/camera/depth":
+        return None
+    if ch.topic == "/camera/calibration":
+        cal = CameraCalibration.FromString(m.data)
+        info = ros1_camera_info(t, np.reshape(cal.K, (3, 3)), cal.width, cal.height, cal.D)
+        topic, name, definition, data, _ = ros1_record("/camera/camera_info", info, t)
+    elif ch.topic == "/camera/image":
+        img = ros1_image(t, _mosaic(_rgb(m), "rggb"), "bayer_rggb8")
+        topic, name, definition, data, _ = ros1_record("/camera/image_raw", img, t)
+    else:
+        return ch.topic, schema.name, schema.encoding, schema.data, ch.message_encoding, m.data
+    return topic, name, "ros1msg", definition, "ros1", data
 
 
 @pytest.mark.slow
 def test_run_on_a_ros1_bayer_log(tmp_path, cache_dir):
     # A ROS 1 bag of a colour-filter camera, converted with `mcap convert`: the whole job reads it, finds
     # the poses and writes them beside the log's own messages.
-    fox = convert.main(ROOT / "demo_data" / "ycbv", tmp_path / "demo.mcap", fmt="ycbv")
-    log_path = tmp_path / "ros1.mcap"
-    _as_ros1_bayer(fox, log_path)
-    out = run.main(PIPELINE, _manifest(tmp_path, log_path), tmp_path / "run", cache_dir=cache_dir, jobs=1)
-    with open(log_path, "rb") as f:
-        inp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
-    with open(out / "poses.mcap", "rb") as f:
-        outp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
-    assert {t for t, _, _ in inp} == {"/camera/image_raw", "/camera/camera_info", "/ground_truth/poses"}
-    assert set(inp) <= set(outp) and "/batchpose/tf" in {t for t, _, _ in outp}
-    frames = pd.read_csv(out / "report" / "frames.csv")
-    gel = frames[frames["obj_name"] == "009_gelatin_box"]
-    assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all(), gel[["status", "add_m"]]
+    log_path = _rewritten(_demo_log(tmp_path), tmp_path / "ros1.mcap", _as_ros1_bayer, profile="ros1")
+    inp, outp = _run_keeps_the_log_and_finds_the_gelatin_box(tmp_path, log_path, cache_dir)
+    assert inp == {"/camera/image_raw", "/camera/camera_info", "/ground_truth/poses"}
+    assert "/batchpose/tf" in outp
 
 
 @pytest.mark.slow
 def test_run_on_a_foxglove_video_log(tmp_path, cache_dir):
     # The demo frames as Foxglove's CompressedVideo (H.264, as a recorder that saves space writes them).
-    fox = convert.main(ROOT / "demo_data" / "ycbv", tmp_path / "demo.mcap", fmt="ycbv")
+    fox = _demo_log(tmp_path)
     with open(fox, "rb") as f:
-        msgs = list(make_reader(f).iter_messages())
-    images = [
-        cv2.imdecode(np.frombuffer(CompressedImage.FromString(m.data).data, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
-        for _, ch, m in msgs
-        if ch.topic == "/camera/image"
-    ]
+        images = [_rgb(m) for _, ch, m in make_reader(f).iter_messages() if ch.topic == "/camera/image"]
     packets = iter(encode_video(images, gop=30))
-    log_path = tmp_path / "video.mcap"
-    with open(log_path, "wb") as f:
-        w = Writer(f)
-        w.start(library="test")
-        ids: dict[str, int] = {}
-        for schema, ch, m in msgs:
-            if ch.topic == "/camera/depth":
-                continue
-            data, topic = m.data, ch.topic
-            if topic == "/camera/image":
-                img = CompressedImage.FromString(m.data)
-                video = CompressedVideo(frame_id=img.frame_id, format="h264", data=next(packets))
-                video.timestamp.CopyFrom(img.timestamp)
-                data, topic = video.SerializeToString(), "/camera/video"
-                if topic not in ids:
-                    ids[topic] = w.register_channel(topic, "protobuf", register_schema(w, CompressedVideo))
-            elif topic not in ids:
-                ids[topic] = w.register_channel(
-                    topic, ch.message_encoding, w.register_schema(schema.name, schema.encoding, schema.data)
-                )
-            w.add_message(ids[topic], log_time=m.log_time, data=data, publish_time=m.publish_time)
-        w.finish()
-    out = run.main(PIPELINE, _manifest(tmp_path, log_path), tmp_path / "run", cache_dir=cache_dir, jobs=1)
-    with open(log_path, "rb") as f:
-        inp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages()]
-    with open(out / "poses.mcap", "rb") as f:
-        outp = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f, validate_crcs=True).iter_messages()]
-    assert set(inp) <= set(outp) and "/batchpose/annotations" in {t for t, _, _ in outp}
-    frames = pd.read_csv(out / "report" / "frames.csv")
-    gel = frames[frames["obj_name"] == "009_gelatin_box"]
-    assert len(gel) == 3 and (gel["add_m"] < 0.1 * gel["diameter_m"]).all(), gel[["status", "add_m"]]
+    video_schema = build_file_descriptor_set(CompressedVideo).SerializeToString()
+
+    def as_video(schema, ch, m):
+        if ch.topic == "/camera/depth":
+            return None
+        if ch.topic != "/camera/image":
+            return ch.topic, schema.name, schema.encoding, schema.data, ch.message_encoding, m.data
+        img = CompressedImage.FromString(m.data)
+        video = CompressedVideo(frame_id=img.frame_id, format="h264", data=next(packets))
+        video.timestamp.CopyFrom(img.timestamp)
+        return (
+            "/camera/video",
+            "foxglove.CompressedVideo",
+            "protobuf",
+            video_schema,
+            "protobuf",
+            video.SerializeToString(),
+        )
+
+    log_path = _rewritten(fox, tmp_path / "video.mcap", as_video)
+    _, outp = _run_keeps_the_log_and_finds_the_gelatin_box(tmp_path, log_path, cache_dir)
+    assert "/batchpose/annotations" in outp
 
 
 def _bad_logs(tmp_path):
