@@ -22,7 +22,7 @@ log = logging.getLogger("batchpose")
 
 
 def _cmd_convert(args: argparse.Namespace) -> None:
-    from batchpose import convert
+    from batchpose.stages import convert
 
     out = convert.main(Path(args.src), Path(args.out), fmt=args.format, overwrite=args.overwrite)
     print(f"wrote {out}")
@@ -46,14 +46,14 @@ def _cmd_run(args: argparse.Namespace) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
-    from batchpose import make_report
+    from batchpose.report import make_report
 
     out = make_report.main(Path(args.run_dir), overwrite=True)
     print(f"report: {out}")
 
 
 def _cmd_compare(args: argparse.Namespace) -> None:
-    from batchpose import make_report
+    from batchpose.report import make_report
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -67,7 +67,8 @@ def _cmd_compare(args: argparse.Namespace) -> None:
 
 
 def _cmd_score(args: argparse.Namespace) -> None:
-    from batchpose import bop, make_report
+    from batchpose.io import bop_csv as bop
+    from batchpose.report import make_report
 
     run = make_report.load_run(Path(args.run_dir))
     if run.gt is None or run.gt.empty:
@@ -181,7 +182,7 @@ def _disk_full(args: argparse.Namespace, e: OSError) -> str:
     for flag in ("out", "cache", "run_dir"):
         value = getattr(args, flag, None)
         if flag == "cache" and value is None and getattr(args, "func", None) is _cmd_run:
-            from batchpose.build_templates import default_cache_dir  # noqa: PLC0415
+            from batchpose.io.library import default_cache_dir  # noqa: PLC0415
 
             value = default_cache_dir()
         if value is None:

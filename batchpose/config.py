@@ -168,7 +168,7 @@ class GncConfig:
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """Render-and-match refinement (batchpose's addition; see :mod:`batchpose.refine`)."""
+    """Render-and-match refinement (batchpose's addition; see :mod:`batchpose.method.refine`)."""
 
     enabled: bool = True
     """Refine every pose by matching the frame against the mesh rendered at that pose."""
@@ -228,7 +228,7 @@ class FineConfig:
     locate: bool = True
     """When the best pose so far (the whole frame's, or the coarse box's fine pass's) is weak, also run
     the fine pass where the frame's keypoints vote the object to be
-    (:func:`batchpose.correspondences.locate`: each match predicts the object's centre, size and in-plane
+    (:func:`batchpose.method.correspondences.locate`: each match predicts the object's centre, size and in-plane
     rotation from its keypoint's scale and angle); the pass with the most support wins. A small object in
     clutter often loses the whole-frame pass to a handful of chance matches elsewhere."""
     locate_below: float = 0.5
@@ -250,7 +250,7 @@ class FineConfig:
 
 @dataclass(frozen=True)
 class TrackConfig:
-    """Frame-to-frame tracking (batchpose's addition; see :mod:`batchpose.track`): a confident pose is
+    """Frame-to-frame tracking (batchpose's addition; see :mod:`batchpose.method.track`): a confident pose is
     followed into the next frames with optical flow and PnP instead of being estimated afresh."""
 
     enabled: bool = True
@@ -358,7 +358,7 @@ class TrackConfig:
 @dataclass(frozen=True)
 class DepthConfig:
     """Optional use of a depth image registered to the colour image (batchpose's addition; see
-    :mod:`batchpose.depth`). The RGB estimate is unchanged; each pose it finds is then aligned to the sensor's
+    :mod:`batchpose.method.depth`). The RGB estimate is unchanged; each pose it finds is then aligned to the sensor's
     depth (robust point-to-plane ICP on the object's pixels), which fixes the weak axis of a monocular pose,
     the distance along the viewing ray. Frames without a depth image keep their RGB poses."""
 
@@ -395,9 +395,9 @@ class DepthConfig:
     the rendered surface, the pose contradicts the depth too: the sensor sees the object nowhere there, e.g.
     a pose far behind the objects in front of it (0: never fail a pose)."""
     search: bool = False
-    """Look for an object the RGB estimate did not find (or whose pose the depth contradicts) by colour and
-    depth (:mod:`batchpose.search`, ~3–10 s an object). A pose found this way has reason "found by the depth
-    search" and confidence at most 0.5."""
+    """Look for an object the RGB estimate did not find (or whose pose the depth contradicts) by colour
+    and depth (:mod:`batchpose.method.depth_search`, ~3–10 s an object). A pose found this way has reason
+    "found by the depth search" and confidence at most 0.5."""
     search_view_step: int = 4
     """Use every this-many-th library view (at the nearest distance) as a silhouette."""
     search_angles: int = 12
@@ -426,7 +426,7 @@ class DepthConfig:
 @dataclass(frozen=True)
 class PlaneConfig:
     """Looking for an object SIFT missed on the surface the found objects rest on (batchpose's addition; see
-    :mod:`batchpose.plane`). Runs only for an object without a pose in a frame where at least
+    :mod:`batchpose.method.plane`). Runs only for an object without a pose in a frame where at least
     ``min_objects`` others were found confidently and rest on one plane; not where ``depth.search`` has a depth
     image to search with."""
 
@@ -464,7 +464,7 @@ class PlaneConfig:
     frame does not show, placed where the colours and texture fit best (a white marker on the white table,
     a can on the mustard bottle), 0.3-1.0."""
     edge_weight: float = 0.5
-    """Weight of the edge score (:attr:`batchpose.plane.Placed.edge`: how closely the frame's edges follow
+    """Weight of the edge score (:attr:`batchpose.method.plane.Placed.edge`: how closely the frame's edges follow
     the placed silhouette's outline) in the refinement's score. 0: edges are not looked at while refining.
     It also aligns wrong placements with whatever edges are near: alone it took the poses of objects the
     frames do not show from 2 to 7 (tabletop seeds 0-1), with ``min_edge`` 0.4 from 4 to 10 (seeds 0-5);

@@ -19,12 +19,15 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from batchpose import build_templates, estimate_poses, export_mcap, ingest_frames
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml, to_dict
+from batchpose.core.frames import Camera, working_camera
 from batchpose.errors import CameraError, ConfigError
-from batchpose.frames import Camera, working_camera
-from batchpose.manifest import load_manifest
-from batchpose.mesh import load_mesh
+from batchpose.io import library
+from batchpose.io.manifest import load_manifest
+from batchpose.io.mesh import load_mesh
+from batchpose.stages import build_templates, export_mcap
+from batchpose.stages import estimate as estimate_poses
+from batchpose.stages import ingest as ingest_frames
 
 log = logging.getLogger("batchpose")
 
@@ -76,7 +79,7 @@ def _exclusive(run_dir: Path):
 
 
 def _mesh_hash(path: Path) -> str:
-    from batchpose.mesh import content_hash  # noqa: PLC0415
+    from batchpose.io.mesh import content_hash  # noqa: PLC0415
 
     try:
         return content_hash(path)
@@ -99,7 +102,7 @@ def _comparable(resolved: dict) -> dict:
     """A run's saved config without what may change between runs in one directory: the mesh hashes (checked
     on their own) and which of the data set's frames it uses (``frames:`` keys :data:`SELECT_KEYS`, like
     ``--limit``: ingest indexes the frames anew and the pairs already estimated are kept)."""
-    from batchpose.datasets import SELECT_KEYS  # noqa: PLC0415
+    from batchpose.io.folders import SELECT_KEYS  # noqa: PLC0415
 
     out = {**resolved, "meshes": None}
     manifest = out.get("manifest")
@@ -211,7 +214,7 @@ def main(
     report: bool = True,
 ) -> Path:
     """Run the whole pipeline; returns ``run_dir``."""
-    from batchpose.datasets import SelectedFrames, open_frames
+    from batchpose.io.folders import SelectedFrames, open_frames
 
     t_start = time.perf_counter()
     if jobs < 1:
@@ -230,7 +233,7 @@ def main(
             str(value or "").encode("utf-8")
         except UnicodeEncodeError:
             raise ConfigError(f"{flag}: the path is not valid UTF-8 text; choose another") from None
-    cache_dir = Path(cache_dir) if cache_dir else build_templates.default_cache_dir()
+    cache_dir = Path(cache_dir) if cache_dir else library.default_cache_dir()
     if cache_dir.exists() and not cache_dir.is_dir():
         raise ConfigError(f"--cache {cache_dir}: is a file, not a directory")
 
@@ -333,12 +336,12 @@ def main(
         if max_pairs is not None and poses_path.name != "poses.parquet":
             return run_dir  # stopped early on purpose (resume tests)
 
-        from batchpose import bop
+        from batchpose.io import bop_csv as bop
 
         csv_path = bop.write_bop_csv(pd.read_parquet(poses_path), run_dir / "poses.csv")
         mcap_path = export_mcap.main(run_dir, poses_path, models, man.frames, source, overwrite=overwrite)
         if report:
-            from batchpose import make_report
+            from batchpose.report import make_report
 
             make_report.main(run_dir, overwrite=True)
         log.info("done in %.1f s: %s, %s", time.perf_counter() - t_start, csv_path, mcap_path)

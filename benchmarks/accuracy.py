@@ -2,7 +2,7 @@
 
 Runs ``gnc_pose``, ``paper``, ``ransac_only``, ``no_geom_weights`` and ``tp_ub`` (``batchpose.run.main``,
 ``--jobs 2``, fresh run folders, template libraries built first and not timed) and prints
-``batchpose.make_report.compare``'s table: detection, ADD-S / ADD AUC, recalls at 0.1 d, median errors,
+``batchpose.report.make_report.compare``'s table: detection, ADD-S / ADD AUC, recalls at 0.1 d, median errors,
 compute time per (frame, object) and estimation wall time per pair. With a baseline (default
 ``benchmarks/accuracy_baseline.csv``, written by ``--save-baseline``) it flags any pipeline whose ADD-S or
 ADD AUC fell by more than ``--tolerance`` points, so a speed-up that costs accuracy shows.
@@ -28,8 +28,11 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO, SHARED_DATA, StageTimer, code_version, machine, run_in_child, table, target  # noqa: E402
 
-from batchpose import build_templates, estimate_poses, make_report  # noqa: E402
 from batchpose import run as run_mod  # noqa: E402
+from batchpose.io import library
+from batchpose.report import make_report  # noqa: E402
+from batchpose.stages import build_templates  # noqa: E402
+from batchpose.stages import estimate as estimate_poses
 
 PIPELINES = ("gnc_pose", "paper", "ransac_only", "no_geom_weights", "tp_ub")
 BASELINE = Path(__file__).resolve().parent / "accuracy_baseline.csv"
@@ -47,9 +50,9 @@ COLUMNS = [
 def warm_cache(manifest: str, pipeline: str, overrides: list[str], cache: str) -> float:
     """Build the pipeline's template libraries (in a child process); returns seconds."""
     from batchpose.config import apply_overrides, load_estimator_config, load_yaml  # noqa: PLC0415
-    from batchpose.datasets import open_frames  # noqa: PLC0415
-    from batchpose.manifest import load_manifest  # noqa: PLC0415
-    from batchpose.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.io.folders import open_frames  # noqa: PLC0415
+    from batchpose.io.manifest import load_manifest  # noqa: PLC0415
+    from batchpose.io.mesh import load_mesh  # noqa: PLC0415
 
     conf = load_estimator_config(apply_overrides(load_yaml(Path(pipeline)), list(overrides)))
     man = load_manifest(Path(manifest))
@@ -70,7 +73,7 @@ def main() -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument(
         "--cache",
-        default=str(build_templates.default_cache_dir()),
+        default=str(library.default_cache_dir()),
         help="template cache (default: $BATCHPOSE_CACHE or ~/.cache/batchpose)",
     )
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override for every pipeline")

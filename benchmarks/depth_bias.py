@@ -29,8 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import code_version, machine, table  # noqa: E402
 
 from batchpose.config import MeshConfig  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
 
 
 def _pose(row) -> np.ndarray:

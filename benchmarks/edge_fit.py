@@ -26,11 +26,11 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO  # noqa: E402,F401  (puts the repo on sys.path)
 
-from batchpose.datasets import open_frames  # noqa: E402
-from batchpose.frames import decode_image  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.poses import row_cam_from_model  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
+from batchpose.core.frames import decode_image  # noqa: E402
+from batchpose.core.poses import row_cam_from_model  # noqa: E402
+from batchpose.io.folders import open_frames  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
 
 SHIFTS = (-0.03, -0.015, 0.015, 0.03)
 

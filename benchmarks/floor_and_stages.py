@@ -3,7 +3,7 @@
 On the frames the pipeline estimates (those with at least one target object):
 
 1. warms the template cache in a child process (template building is not timed here; see ``templates.py``);
-2. the floor: ``decode_image`` + ``to_gray`` + ``batchpose.features.detect`` with the pipeline's
+2. the floor: ``decode_image`` + ``to_gray`` + ``batchpose.method.features.detect`` with the pipeline's
    FeatureConfig, in a fresh single process, median of ``--floor-repeats`` passes per frame, measured
    before and after the pipeline runs (per frame the faster of the two counts: the shared host's speed
    drifts), with glibc told to keep freed large buffers (``KEEP_BUFFERS_ENV``: otherwise every SIFT call
@@ -59,16 +59,21 @@ from _common import (  # noqa: E402
     target,
 )
 
-from batchpose import bop, build_templates, estimate_poses, export_mcap, ingest_frames, make_report, mcap_io  # noqa: E402,I001
 from batchpose import run as run_mod  # noqa: E402
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml  # noqa: E402
-from batchpose.datasets import open_frames  # noqa: E402
-from batchpose.estimate import PoseEstimator  # noqa: E402
-from batchpose.features import detect, make_sift, to_gray  # noqa: E402
-from batchpose.frames import decode_image  # noqa: E402
-from batchpose.manifest import load_manifest  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.poses import STAGES  # noqa: E402
+from batchpose.core.frames import decode_image  # noqa: E402
+from batchpose.core.poses import STAGES  # noqa: E402
+from batchpose.io import bop_csv as bop  # noqa: E402,I001
+from batchpose.io import library, mcap_io
+from batchpose.io.folders import open_frames  # noqa: E402
+from batchpose.io.manifest import load_manifest  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.estimator import PoseEstimator  # noqa: E402
+from batchpose.method.features import detect, make_sift, to_gray  # noqa: E402
+from batchpose.report import make_report  # noqa: E402,I001
+from batchpose.stages import build_templates, export_mcap  # noqa: E402,I001
+from batchpose.stages import estimate as estimate_poses
+from batchpose.stages import ingest as ingest_frames
 
 RATIO_ONE = 1.3  # end-to-end / floor with one target object per frame
 RATIO_EXTRA = 0.3  # added per further object, in floors
@@ -314,7 +319,7 @@ def main() -> int:
     ap.add_argument("--pipeline", default=str(REPO / "pipelines" / "gnc_pose.yaml"))
     ap.add_argument(
         "--cache",
-        default=str(build_templates.default_cache_dir()),
+        default=str(library.default_cache_dir()),
         help="template cache, warmed before timing (default: $BATCHPOSE_CACHE or ~/.cache/batchpose)",
     )
     ap.add_argument("--limit", type=int, default=None, help="first N frames only")

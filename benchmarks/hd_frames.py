@@ -29,7 +29,9 @@ import scipy.io
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO, StageTimer, code_version, machine, run_in_child, table  # noqa: E402
 
-from batchpose import build_templates, estimate_poses, run  # noqa: E402
+from batchpose import run  # noqa: E402
+from batchpose.stages import build_templates  # noqa: E402
+from batchpose.stages import estimate as estimate_poses
 
 
 def upscale_demo(factor: float, out: Path) -> Path:

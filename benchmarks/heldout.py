@@ -35,10 +35,10 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO, code_version, machine, table  # noqa: E402
 
-from batchpose.datasets import YcbvFrameSource  # noqa: E402
-from batchpose.frames import decode_depth, decode_image  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
+from batchpose.core.frames import decode_depth, decode_image  # noqa: E402
+from batchpose.io.folders import YcbvFrameSource  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 MODELS = DATA / "ycb_models"
@@ -48,7 +48,7 @@ DEV_OBJECTS = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "006_m
 
 def random_rotation(rng: np.random.Generator, max_roll_deg: float = 30.0) -> np.ndarray:
     """Camera-from-model rotation: a uniformly random view direction, then a roll about the optical axis."""
-    from batchpose.views import look_at  # noqa: PLC0415
+    from batchpose.method.views import look_at  # noqa: PLC0415
 
     d = rng.normal(size=3)
     d /= np.linalg.norm(d)

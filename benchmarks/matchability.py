@@ -29,15 +29,15 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import code_version, machine, table  # noqa: E402
 
-from batchpose import build_templates  # noqa: E402
 from batchpose.config import load_estimator_config, load_yaml  # noqa: E402
-from batchpose.datasets import open_frames  # noqa: E402
-from batchpose.features import detect_shapes, make_sift, to_gray  # noqa: E402
-from batchpose.frames import decode_image  # noqa: E402
-from batchpose.manifest import load_manifest  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
-from batchpose.templates import lift_keypoints  # noqa: E402
+from batchpose.core.frames import decode_image  # noqa: E402
+from batchpose.io import library
+from batchpose.io.folders import open_frames  # noqa: E402
+from batchpose.io.manifest import load_manifest  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.features import detect_shapes, make_sift, to_gray  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
+from batchpose.method.templates import lift_keypoints  # noqa: E402
 
 RIGHT_PX = 4.0
 
@@ -73,7 +73,7 @@ def main() -> int:
     names = args.objects or sorted(set(scored["obj_name"]))
     sift = make_sift(conf.features)
     renderer = get_renderer()
-    libs = {n: build_templates.load(Path(objects[n]["library"])) for n in names}
+    libs = {n: library.load(Path(objects[n]["library"])) for n in names}
     models = {n: load_mesh(Path(objects[n]["mesh"]), conf.mesh, name=n) for n in names}
     print(f"# matchability: {machine()}; code {code_version()}; run {args.run}")
 

@@ -20,8 +20,8 @@ import numpy as np
 import trimesh
 from PIL import Image
 
-from batchpose.frames import Camera, Frame, decode_image
-from batchpose.mcap_io import McapFrameSource, mesh_to_glb, write_frames_mcap, write_poses_mcap
+from batchpose.core.frames import Camera, Frame, decode_image
+from batchpose.io.mcap_io import McapFrameSource, mesh_to_glb, write_frames_mcap, write_poses_mcap
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])

@@ -1,6 +1,6 @@
 """Replay a finished run's plane search under other settings, without SIFT: a plane change measured in minutes.
 
-The plane search (``plane.enabled``, :mod:`batchpose.plane`) looks for an object SIFT missed on the surface
+The plane search (``plane.enabled``, :mod:`batchpose.method.plane`) looks for an object SIFT missed on the surface
 the found objects rest on. Its inputs are the frame and the other objects' poses, and a finished run holds
 both. This script takes a run, puts back every pose it reported for the objects not looked at, takes away
 the plane search's own poses of the objects looked at (``--objects``: they are searched again, as are
@@ -34,16 +34,16 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import code_version, machine, table  # noqa: E402
 
-from batchpose import build_templates  # noqa: E402
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml  # noqa: E402
-from batchpose.datasets import open_frames  # noqa: E402
-from batchpose.estimate import PoseEstimator  # noqa: E402
-from batchpose.frames import decode_image  # noqa: E402
-from batchpose.manifest import load_manifest  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.metrics import adds  # noqa: E402
-from batchpose.poses import PoseRecord  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
+from batchpose.core.frames import decode_image  # noqa: E402
+from batchpose.core.poses import PoseRecord  # noqa: E402
+from batchpose.io import library
+from batchpose.io.folders import open_frames  # noqa: E402
+from batchpose.io.manifest import load_manifest  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.estimator import PoseEstimator  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
+from batchpose.report.metrics import adds  # noqa: E402
 
 #: Reasons of the poses the plane search made (taken away from the objects looked at).
 PLANE_REASONS = ("found by the plane search", "followed from the previous frame's plane search")
@@ -99,7 +99,7 @@ def main() -> int:
     objects = json.loads((args.run / "objects.json").read_text())
     poses, gt = pd.read_parquet(args.run / "poses.parquet"), pd.read_parquet(args.run / "gt.parquet")
     names = sorted(objects)
-    libs = {n: build_templates.load(Path(objects[n]["library"])) for n in names}
+    libs = {n: library.load(Path(objects[n]["library"])) for n in names}
     models = {n: load_mesh(Path(objects[n]["mesh"]), confs["run"].mesh, name=n) for n in names}
     pts = {n: np.loadtxt(objects[n]["points"]) for n in args.objects}
     renderer = get_renderer()

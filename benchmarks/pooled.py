@@ -5,7 +5,7 @@ A held-out seed of 16 frames per object is a small sample: one pair moves an obj
 several points (reports/ACCURACY.md). This script reads the per-pair tables (``report/frames.csv``) of
 runs over independent draws of the same kind of data (e.g. ``benchmarks/heldout.py`` at several seeds),
 pools their pairs per object and prints, per object and for the mean over objects, the ADD-S and ADD AUC
-(``batchpose.metrics.vocap_auc``, as the reports compute them) with a 95 % bootstrap interval: pairs
+(``batchpose.report.metrics.vocap_auc``, as the reports compute them) with a 95 % bootstrap interval: pairs
 redrawn with replacement within each object (``--boot`` times), so each object keeps its number of pairs.
 The target lines say whether the mean passes the paper's figures (85.7 / 72.2) and how often the
 resampled means do. The interval assumes the pairs are independent draws, as held-out frames are;
@@ -27,7 +27,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import table, target  # noqa: E402
 
-from batchpose.metrics import vocap_auc  # noqa: E402
+from batchpose.report.metrics import vocap_auc  # noqa: E402
 
 PAPER = {"adds_m": 85.7, "add_m": 72.2}  # GNC-Pose's mean over the 12 objects (SPEC.md / the issue)
 COLUMNS = ("adds_m", "add_m")

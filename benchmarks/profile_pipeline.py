@@ -24,8 +24,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO, code_version, default_manifest, machine, run_in_child, table  # noqa: E402
 from floor_and_stages import warm_cache  # noqa: E402
 
-from batchpose import build_templates  # noqa: E402
 from batchpose import run as run_mod  # noqa: E402
+from batchpose.io import library
 
 
 def _walk(frame, stack: tuple, self_t: dict, incl_t: dict) -> None:
@@ -45,7 +45,7 @@ def main() -> int:
     )
     ap.add_argument("--manifest", default=str(default_manifest()))
     ap.add_argument("--pipeline", default=str(REPO / "pipelines" / "gnc_pose.yaml"))
-    ap.add_argument("--cache", default=str(build_templates.default_cache_dir()))
+    ap.add_argument("--cache", default=str(library.default_cache_dir()))
     ap.add_argument("--limit", type=int, default=None, help="first N frames only")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="pipeline override")
     ap.add_argument("--top", type=int, default=15)

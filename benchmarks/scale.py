@@ -1,7 +1,7 @@
 """Scale: a generated 640x480 JPEG MCAP (default 2,000 frames) through the whole pipeline with --jobs 2.
 
 The log shows the bundled cracker box (demo_data/models/003_cracker_box) rendered with
-``batchpose.render`` along a smooth trajectory (a full turn in azimuth, rising and falling elevation,
+``batchpose.method.render`` along a smooth trajectory (a full turn in azimuth, rising and falling elevation,
 changing distance, in-plane roll, drifting across the image) over five procedurally textured backgrounds
 that pan, with a slow brightness change on the object, per-frame sensor noise, JPEG quality 90, and the
 true pose as ground truth in each frame. Every quarter of the log runs through the same cycle of views and
@@ -33,8 +33,13 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import MB, REPO, RssSampler, StageTimer, code_version, machine, run_in_child, table, target  # noqa: E402
 
-from batchpose import bop, build_templates, estimate_poses, export_mcap, ingest_frames, make_report  # noqa: E402
 from batchpose import run as run_mod  # noqa: E402
+from batchpose.io import bop_csv as bop  # noqa: E402
+from batchpose.io import library
+from batchpose.report import make_report  # noqa: E402
+from batchpose.stages import build_templates, export_mcap  # noqa: E402
+from batchpose.stages import estimate as estimate_poses
+from batchpose.stages import ingest as ingest_frames
 
 W, H = 640, 480
 K = np.array([[620.0, 0.0, 319.5], [0.0, 620.0, 239.5], [0.0, 0.0, 1.0]])
@@ -82,7 +87,7 @@ def backgrounds(n: int, seed: int = 0) -> list[np.ndarray]:
 
 def trajectory(i: int, period: int, center_m: np.ndarray, diameter_m: float) -> np.ndarray:
     """cam_from_model (4, 4) of frame ``i``: smooth, and periodic with ``period`` frames (a quarter of the log)."""
-    from batchpose.views import look_at  # noqa: PLC0415
+    from batchpose.method.views import look_at  # noqa: PLC0415
 
     ph = 2 * np.pi * i / period
     az = ph  # one turn per period
@@ -109,10 +114,10 @@ def second_pose(i: int, period: int, center_m: np.ndarray, diameter_m: float) ->
 
 def generate(path: str, n: int, quality: int = 90, two_objects: bool = False) -> dict:
     """Write the log (run in a child process: the renderer's memory stays out of the measured processes)."""
-    from batchpose.frames import Camera, Frame, ObjectPose  # noqa: PLC0415
-    from batchpose.mcap_io import write_frames_mcap  # noqa: PLC0415
-    from batchpose.mesh import load_mesh  # noqa: PLC0415
-    from batchpose.render import get_renderer  # noqa: PLC0415
+    from batchpose.core.frames import Camera, Frame, ObjectPose  # noqa: PLC0415
+    from batchpose.io.mcap_io import write_frames_mcap  # noqa: PLC0415
+    from batchpose.io.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.method.render import get_renderer  # noqa: PLC0415
 
     model = load_mesh(MODELS / OBJECT / "textured.obj", name=OBJECT)
     second = load_mesh(MODELS / SECOND / "textured.obj", name=SECOND) if two_objects else None
@@ -167,8 +172,8 @@ def generate(path: str, n: int, quality: int = 90, two_objects: bool = False) ->
 def warm_cache(manifest: str, pipeline: str, cache: str) -> float:
     """Build the template library in a child process (see ``generate``); returns seconds."""
     from batchpose.config import load_estimator_config, load_yaml  # noqa: PLC0415
-    from batchpose.manifest import load_manifest  # noqa: PLC0415
-    from batchpose.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.io.manifest import load_manifest  # noqa: PLC0415
+    from batchpose.io.mesh import load_mesh  # noqa: PLC0415
 
     conf = load_estimator_config(load_yaml(Path(pipeline)))
     man = load_manifest(Path(manifest))
@@ -207,7 +212,7 @@ def main() -> int:
     ap.add_argument("--pipeline", default=str(REPO / "pipelines" / "gnc_pose.yaml"))
     ap.add_argument(
         "--cache",
-        default=str(build_templates.default_cache_dir()),
+        default=str(library.default_cache_dir()),
         help="template cache, warmed before timing (default: $BATCHPOSE_CACHE or ~/.cache/batchpose)",
     )
     ap.add_argument("--keep", help="write the log and the run here instead of a temporary folder")

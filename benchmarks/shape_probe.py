@@ -33,14 +33,15 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import REPO  # noqa: E402  (puts the repo on sys.path)
 
-from batchpose import build_templates  # noqa: E402
 from batchpose.config import load_estimator_config, load_yaml  # noqa: E402
-from batchpose.datasets import open_frames  # noqa: E402
-from batchpose.features import to_gray  # noqa: E402
-from batchpose.frames import decode_image  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
-from batchpose.search import pose_from_view  # noqa: E402
+from batchpose.core.frames import decode_image  # noqa: E402
+from batchpose.io import library
+from batchpose.io.folders import open_frames  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.depth_search import pose_from_view  # noqa: E402
+from batchpose.method.features import to_gray  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
+from batchpose.stages import build_templates  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 
@@ -268,7 +269,7 @@ def main() -> int:
     ap.add_argument("--top", type=int, default=12)
     ap.add_argument("--view-step", type=int, default=2)
     ap.add_argument("--scales-per-octave", type=int, default=4)
-    ap.add_argument("--cache", default=str(build_templates.default_cache_dir()))
+    ap.add_argument("--cache", default=str(library.default_cache_dir()))
     ap.add_argument(
         "--refine", type=int, default=0, help="refine the best N hits by their colour score and keep the best"
     )
@@ -284,7 +285,7 @@ def main() -> int:
     }
     first = frames[args.frames[0]]
     model = load_mesh(DATA / "ycb_models" / args.object / "textured.obj", conf.mesh, name=args.object)
-    lib = build_templates.load(
+    lib = library.load(
         build_templates.main(model, conf, first.camera.K, first.camera.width, first.camera.height, Path(args.cache))
     )
     renderer = get_renderer()

@@ -4,7 +4,7 @@ benchmarks/heldout.py puts each object anywhere in the air, alone; the plane sea
 tabletop scenes have — other objects found on the same surface. This script takes the real frames of
 ycbv_dev's video 0001 (master chef can, cracker box, sugar box and mustard bottle on a table), finds the
 table from their ground-truth poses, and stands each other YCB object on it: on one of its resting faces
-(:func:`batchpose.plane.resting_faces`, chosen uniformly), turned at random about the table's normal, at a
+(:func:`batchpose.method.plane.resting_faces`, chosen uniformly), turned at random about the table's normal, at a
 random free place on the table in view (0.5-1.6 m away, where the depth image sees the table, clear
 of the real objects' footprints, at least half of it visible). The real objects in front hide it where
 the frame's depth image is nearer; then the frame gets heldout.py's colour gain, blur, noise and JPEG.
@@ -37,12 +37,12 @@ from _common import code_version, machine, table  # noqa: E402
 from heldout import DEV, MODELS, compose, run_options, run_pipeline  # noqa: E402
 
 from batchpose.config import PlaneConfig  # noqa: E402
-from batchpose.datasets import YcbvFrameSource  # noqa: E402
-from batchpose.frames import decode_depth, decode_image  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.metrics import vocap_auc  # noqa: E402
-from batchpose.plane import resting, resting_faces, stable_faces, support_plane  # noqa: E402
-from batchpose.render import get_renderer  # noqa: E402
+from batchpose.core.frames import decode_depth, decode_image  # noqa: E402
+from batchpose.io.folders import YcbvFrameSource  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method.plane import resting, resting_faces, stable_faces, support_plane  # noqa: E402
+from batchpose.method.render import get_renderer  # noqa: E402
+from batchpose.report.metrics import vocap_auc  # noqa: E402
 
 ALL = (
     "002_master_chef_can", "003_cracker_box", "004_sugar_box", "005_tomato_soup_can", "006_mustard_bottle",

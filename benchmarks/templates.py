@@ -2,7 +2,7 @@
 
 For each object of the manifest, in a fresh cache folder: ``build_templates.main`` cold, with every
 ``Renderer.render`` call and every template ``detect_shapes`` (SIFT) call counted and timed; then the same call
-again (must find the cache: 0 renders) and ``build_templates.load`` (what each worker does at start-up),
+again (must find the cache: 0 renders) and ``library.load`` (what each worker does at start-up),
 with the mesh read from the cache folder (``load_mesh(cache_dir=)``) and the library's FLANN index built
 afresh, built and kept in the library folder, and loaded from there (``flann_index(keep_in=)``).
 The GL context is created before timing (with a stand-in box mesh), so the first object does not pay it.
@@ -27,13 +27,15 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import MB, REPO, RssSampler, StageTimer, code_version, default_manifest, machine, table, target  # noqa: E402
 
-from batchpose import build_templates, templates  # noqa: E402
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml  # noqa: E402
-from batchpose.correspondences import flann_index  # noqa: E402
-from batchpose.datasets import open_frames  # noqa: E402
-from batchpose.manifest import load_manifest  # noqa: E402
-from batchpose.mesh import load_mesh  # noqa: E402
-from batchpose.render import Renderer, get_renderer  # noqa: E402
+from batchpose.io import library
+from batchpose.io.folders import open_frames  # noqa: E402
+from batchpose.io.manifest import load_manifest  # noqa: E402
+from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.method import templates  # noqa: E402
+from batchpose.method.correspondences import flann_index  # noqa: E402
+from batchpose.method.render import Renderer, get_renderer  # noqa: E402
+from batchpose.stages import build_templates  # noqa: E402
 
 COLD_LIMIT_S = 10.0
 
@@ -105,7 +107,7 @@ def main() -> int:
                         model, conf, first.camera.K, first.camera.width, first.camera.height, cache
                     )
                     t_cold = time.perf_counter() - t0
-                lib = build_templates.load(lib_dir)
+                lib = library.load(lib_dir)
                 other = t_cold - tm.total["render"] - tm.total["sift"] - tm.total["save"]
                 cold_times.append(t_cold)
                 cold_rows.append(
@@ -135,7 +137,7 @@ def main() -> int:
                     )
                     t_find = time.perf_counter() - t0
                     t0 = time.perf_counter()
-                    loaded = build_templates.load(again)
+                    loaded = library.load(again)
                     t_load = time.perf_counter() - t0
                 t_index = []
                 for keep_in in (None, loaded.folder, loaded.folder):  # built; built and kept; loaded
@@ -185,7 +187,7 @@ def main() -> int:
                 "renders",
                 "mesh (cached) ms",
                 "find ms (build_templates.main)",
-                "load ms (build_templates.load)",
+                "load ms (library.load)",
                 "total s",
                 "index: build ms",
                 "build + keep ms",

@@ -24,7 +24,7 @@ def cache_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def cracker_model():
-    from batchpose.mesh import load_mesh
+    from batchpose.io.mesh import load_mesh
 
     return load_mesh(CRACKER)
 
@@ -32,8 +32,9 @@ def cracker_model():
 @pytest.fixture(scope="session")
 def cracker_library(cracker_model, cache_dir):
     """Template library of the bundled cracker box for K_SYN, built once per test session."""
-    from batchpose import build_templates
     from batchpose.config import EstimatorConfig
+    from batchpose.io import library
+    from batchpose.stages import build_templates
 
     lib_dir = build_templates.main(cracker_model, EstimatorConfig(), K_SYN, 640, 480, cache_dir)
-    return build_templates.load(lib_dir)
+    return library.load(lib_dir)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from batchpose.config import load_estimator_config
+from batchpose.core.frames import Camera
 from batchpose.errors import ConfigError
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera
-from batchpose.refine import Refined
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.refine import Refined
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose
 from tests.test_fine import rot_deg

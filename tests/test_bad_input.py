@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig, MeshConfig
+from batchpose.core.frames import Camera, Frame
 from batchpose.errors import CameraError, ImageError, MeshError
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera, Frame
-from batchpose.mesh import load_mesh
+from batchpose.io.mesh import load_mesh
+from batchpose.method.estimator import PoseEstimator
 from tests.conftest import GELATIN, K_SYN
 
 TRI = "v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n"
@@ -109,7 +109,8 @@ def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
     """A write that fails for space rarely names its file: the line names the command's folders instead."""
     import errno
 
-    from batchpose import cli, make_report
+    from batchpose import cli
+    from batchpose.report import make_report
 
     def full(run_dir, overwrite=False):
         raise OSError(errno.ENOSPC, "No space left on device")
@@ -121,7 +122,7 @@ def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
     assert err[0].startswith(f"batchpose: error: no space left on device: run dir {tmp_path / 'run'} (")
     assert err[0].endswith("MB free now). Free some space and rerun the same command: finished work is kept")
 
-    from batchpose import convert
+    from batchpose.stages import convert
 
     monkeypatch.setattr(convert, "main", lambda src, out, fmt, overwrite=False: full(out))
     out = tmp_path / "log.mcap"

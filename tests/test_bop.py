@@ -8,9 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from batchpose import bop
+from batchpose.core.poses import PoseRecord
 from batchpose.errors import DataError
-from batchpose.poses import PoseRecord
+from batchpose.io import bop_csv as bop
 
 
 def _T(R: np.ndarray, t: list[float]) -> np.ndarray:

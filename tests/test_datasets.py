@@ -14,7 +14,9 @@ import pytest
 import scipy.io
 import yaml
 
-from batchpose.datasets import (
+from batchpose.core.frames import decode_image
+from batchpose.errors import CameraError, ConfigError, DataError, ImageError
+from batchpose.io.folders import (
     FRAME_PERIOD_NS,
     BopFrameSource,
     ImagesFrameSource,
@@ -22,8 +24,6 @@ from batchpose.datasets import (
     image_size,
     open_frames,
 )
-from batchpose.errors import CameraError, ConfigError, DataError, ImageError
-from batchpose.frames import decode_image
 
 SHARED_YCBV = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_dev"
 K = np.array([[500.0, 0.0, 15.5], [0.0, 510.0, 11.5], [0.0, 0.0, 1.0]])

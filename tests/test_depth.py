@@ -12,14 +12,14 @@ import pandas as pd
 import pytest
 import scipy.io
 
-from batchpose.bop import poses_to_bop
 from batchpose.config import ConfigError, DepthConfig, EstimatorConfig, from_dict, load_estimator_config
-from batchpose.datasets import BopFrameSource, YcbvFrameSource
-from batchpose.depth import Surface, align_to_depth
+from batchpose.core.frames import Camera, Frame, decode_depth
 from batchpose.errors import ImageError
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera, Frame, decode_depth
-from batchpose.render import get_renderer
+from batchpose.io.bop_csv import poses_to_bop
+from batchpose.io.folders import BopFrameSource, YcbvFrameSource
+from batchpose.method.depth import Surface, align_to_depth
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_datasets import make_bop, make_ycbv
 from tests.test_estimate_synthetic import compose
@@ -270,7 +270,7 @@ def _raw_depth(t_header: int, mm: np.ndarray, encoding: str = "16UC1", frame_id:
 
 def test_mcap_depth_topic_pairs_by_header_stamp(tmp_path):
     """Depth logged after its image and a few ms off is paired; a depth 40 ms away is not anyone's."""
-    from batchpose.datasets import open_frames
+    from batchpose.io.folders import open_frames
     from tests.test_mcap_io import DT, T0, H, Log, W, _calib, _cimg, _enc, _img
 
     rng = np.random.default_rng(0)
@@ -316,7 +316,7 @@ def _compressed_depth(depth_m: np.ndarray, encoding: str) -> bytes:
 def test_ros_compressed_depth_topic(tmp_path, encoding):
     """A ROS 1 log with its depth on .../compressedDepth (format "16UC1; compressedDepth png" or 32FC1's
     quantised inverse depth): read to the millimetre, and no reading stays none."""
-    from batchpose.datasets import open_frames
+    from batchpose.io.folders import open_frames
     from tests.test_mcap_io import DT, ROS1, T0, H, W, ros1_camera_info, ros1_header, ros1_image, ros1_log
     from tests.test_mcap_io import ros1_record as rec
 
@@ -347,8 +347,8 @@ def test_ros_compressed_depth_topic(tmp_path, encoding):
 def test_mcap_depth_in_another_camera_frame_is_refused(tmp_path):
     """A RealSense log's depth/image_rect_raw is the depth camera's own image, not registered to the colour
     one; used as depth_topic it would put every depth reading at the wrong pixel."""
-    from batchpose.datasets import open_frames
     from batchpose.errors import DataError
+    from batchpose.io.folders import open_frames
     from tests.test_mcap_io import T0, H, Log, W, _calib, _cimg, _enc, _img
 
     log_ = Log(tmp_path / "d435.mcap")
@@ -365,8 +365,8 @@ def test_mcap_depth_in_another_camera_frame_is_refused(tmp_path):
 def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
     """A folder data set with depth converts to /camera/image + /camera/depth (16UC1, mm); reading the log
     back picks the image topic, not the depth, and the depth round-trips to the millimetre."""
-    from batchpose.datasets import open_frames
-    from batchpose.mcap_io import write_frames_mcap
+    from batchpose.io.folders import open_frames
+    from batchpose.io.mcap_io import write_frames_mcap
 
     make_ycbv(tmp_path / "ycbv")
     tenths = np.random.default_rng(3).integers(3000, 30000, (24, 32)).astype(np.uint16)  # YCB-Video: 0.1 mm
@@ -394,7 +394,7 @@ def _search_scene(model, T, seed: int = 5):
 
 
 def _search(model, library, rgb, depth):
-    from batchpose.search import Silhouettes, search
+    from batchpose.method.depth_search import Silhouettes, search
 
     r = get_renderer()
     conf = DepthConfig(search=True)
@@ -462,7 +462,7 @@ def test_depth_search_finds_an_object_half_hidden_behind_a_nearer_one(cracker_mo
 
 def test_depth_search_finds_nothing_where_the_object_is_not(cracker_model, cracker_library):
     """The same scene with another box (the gelatin box) where the cracker box was: nothing is kept."""
-    from batchpose.mesh import load_mesh
+    from batchpose.io.mesh import load_mesh
     from tests.conftest import GELATIN
 
     other = load_mesh(GELATIN)
@@ -514,7 +514,7 @@ def test_depth_search_follows_its_pose_into_the_next_frame(cracker_model, cracke
 def test_depth_search_for_a_lost_object_only_with_its_full_estimates(cracker_model, cracker_library):
     """With tracking on, an object lost since earlier frames (here: absent) is searched for only in the
     frames where its RGB estimate is a full one (every track.lost_full_every-th), not in every frame."""
-    from batchpose.mesh import load_mesh
+    from batchpose.io.mesh import load_mesh
     from tests.conftest import GELATIN
 
     other = load_mesh(GELATIN)

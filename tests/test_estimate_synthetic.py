@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera
-from batchpose.render import get_renderer
-from batchpose.views import look_at
+from batchpose.core.frames import Camera
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.render import get_renderer
+from batchpose.method.views import look_at
 from tests.conftest import K_SYN
 
 

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig, FineConfig, RefineConfig, load_estimator_config, load_yaml
-from batchpose.correspondences import Correspondences
-from batchpose.estimate import PoseEstimator, fine_keypoints
-from batchpose.features import detect, to_gray
-from batchpose.frames import Camera
-from batchpose.gnc_pnp import PnpResult
-from batchpose.metrics import rotation_error_deg
-from batchpose.render import get_renderer
+from batchpose.core.frames import Camera
+from batchpose.core.geometry import rotation_error_deg
+from batchpose.method.correspondences import Correspondences
+from batchpose.method.estimator import PoseEstimator, fine_keypoints
+from batchpose.method.features import detect, to_gray
+from batchpose.method.gnc_pnp import PnpResult
+from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose, random_pose
 
@@ -149,8 +149,8 @@ def test_implausible_poses_are_failed_not_reported(cracker_model, cracker_librar
 
 @pytest.mark.parametrize("angle_bin_deg", [30.0, 0.0])
 def test_locate_finds_the_object_centre_and_size(cracker_model, cracker_library, angle_bin_deg):
-    from batchpose.correspondences import flann_index, locate
-    from batchpose.features import detect_shapes
+    from batchpose.method.correspondences import flann_index, locate
+    from batchpose.method.features import detect_shapes
 
     conf = EstimatorConfig()
     index = flann_index(cracker_library.desc, conf.match)
@@ -193,8 +193,8 @@ def test_staged_view_matching_gives_the_pairs_of_all_views(cracker_model, cracke
     """match.first_views: the candidates of the first 8 voted views plus those of the other 24 select
     exactly the pairs that matching all 32 at once does; the estimator finds the pose either way and, on a
     sharp frame (strong after 8 views), never matches the other 24."""
-    import batchpose.estimate as est_mod  # noqa: PLC0415
-    from batchpose.correspondences import (  # noqa: PLC0415
+    import batchpose.method.estimator as est_mod  # noqa: PLC0415
+    from batchpose.method.correspondences import (  # noqa: PLC0415
         flann_index,
         match_template_to_query,
         template_to_query_candidates,
@@ -260,9 +260,9 @@ def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_l
     """The view vote and the locator ask the library for the same nearest descriptors: given the one
     query's result they vote and locate exactly as when each queries itself (also under an ROI mask), and
     the estimator queries each keypoint set of an image once."""
-    import batchpose.estimate as est_mod  # noqa: PLC0415
-    from batchpose.correspondences import flann_index, locate, nearest_with_rival, vote_views  # noqa: PLC0415
-    from batchpose.features import detect_shapes  # noqa: PLC0415
+    import batchpose.method.estimator as est_mod  # noqa: PLC0415
+    from batchpose.method.correspondences import flann_index, locate, nearest_with_rival, vote_views  # noqa: PLC0415
+    from batchpose.method.features import detect_shapes  # noqa: PLC0415
 
     rng = np.random.default_rng(5)
     T = random_pose(rng, cracker_model.center_m)

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 
 from batchpose.config import GncConfig
-from batchpose.gnc_pnp import PnpResult, solve_pose, to_matrix
-from batchpose.weights import geom_weights
+from batchpose.method.gnc_pnp import PnpResult, solve_pose, to_matrix
+from batchpose.method.weights import geom_weights
 from tests.conftest import K_SYN
 
 

@@ -8,9 +8,10 @@ import shutil
 import numpy as np
 import pytest
 
-from batchpose import build_templates, correspondences
 from batchpose.config import MatchConfig
-from batchpose.correspondences import flann_index, knn
+from batchpose.io import library as lib_io
+from batchpose.method import correspondences
+from batchpose.method.correspondences import flann_index, knn
 
 CONF = MatchConfig()
 
@@ -20,7 +21,7 @@ def library(cracker_library, tmp_path):
     """The cracker box's library in a folder of this test's own."""
     folder = tmp_path / "lib"
     shutil.copytree(cracker_library.folder, folder, ignore=shutil.ignore_patterns("flann-*"))
-    return build_templates.load(folder)
+    return lib_io.load(folder)
 
 
 def _queries(lib) -> np.ndarray:

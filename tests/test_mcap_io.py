@@ -33,9 +33,9 @@ from mcap_ros2.writer import Writer as Ros2Writer
 from PIL import Image
 from scipy.spatial.transform import Rotation
 
+from batchpose.core.frames import Camera, Frame, ObjectPose, decode_image
 from batchpose.errors import CameraError, ConfigError, DataError, ImageError
-from batchpose.frames import Camera, Frame, ObjectPose, decode_image
-from batchpose.mcap_io import (
+from batchpose.io.mcap_io import (
     ANNOTATIONS_TOPIC,
     DEPTH_TOPIC,
     GT_TOPIC,

@@ -11,8 +11,8 @@ import trimesh
 
 from batchpose.config import MeshConfig
 from batchpose.errors import MeshError
-from batchpose.mesh import load_mesh
-from batchpose.render import get_renderer
+from batchpose.io.mesh import load_mesh
+from batchpose.method.render import get_renderer
 from tests.conftest import GELATIN, K_SYN
 
 

@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from batchpose import metrics
 from batchpose.errors import DataError
+from batchpose.report import metrics
 
 
 def _rot_z(deg: float) -> np.ndarray:

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig, load_estimator_config
+from batchpose.core.frames import Camera
 from batchpose.errors import ConfigError
-from batchpose.estimate import PoseEstimator, _LazyLab
-from batchpose.features import to_gray
-from batchpose.frames import Camera
-from batchpose.gnc_pnp import PnpResult, planar_alternative, reprojection_errors
-from batchpose.render import get_renderer
-from batchpose.views import look_at
+from batchpose.method.estimator import PoseEstimator, _LazyLab
+from batchpose.method.features import to_gray
+from batchpose.method.gnc_pnp import PnpResult, planar_alternative, reprojection_errors
+from batchpose.method.render import get_renderer
+from batchpose.method.views import look_at
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose
 from tests.test_fine import rot_deg
@@ -101,7 +101,7 @@ def test_planar_options_are_checked(key, value, message):
 
 def test_gradient_match_sees_edges_not_their_sign_or_colour():
     """The same outline lighter or darker than its surround matches fully; moved by 6 px it does not."""
-    from batchpose.search import gradient_match
+    from batchpose.method.appearance import gradient_match
 
     img = np.full((100, 100), 60, np.uint8)
     cv2.rectangle(img, (30, 30), (70, 60), 200, -1)

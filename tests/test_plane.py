@@ -12,13 +12,13 @@ import pytest
 import trimesh
 
 from batchpose.config import ConfigError, PlaneConfig, load_estimator_config
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera, Frame
-from batchpose.mesh import load_mesh
-from batchpose.plane import resting_faces, stable_faces, support_plane
-from batchpose.poses import PoseRecord
-from batchpose.render import get_renderer
-from batchpose.views import look_at
+from batchpose.core.frames import Camera, Frame
+from batchpose.core.poses import PoseRecord
+from batchpose.io.mesh import load_mesh
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.plane import resting_faces, stable_faces, support_plane
+from batchpose.method.render import get_renderer
+from batchpose.method.views import look_at
 from tests.conftest import GELATIN, K_SYN
 
 #: A camera 0.55 m above a table (world z = 0), 0.45 m back, looking at the table's origin.
@@ -189,7 +189,7 @@ def test_a_placement_is_scored_by_how_closely_the_frames_edges_follow_its_outlin
     """``Placed.edge``: at the right place the frame's edges run along the silhouette's outline, a centimetre
     aside far fewer do; a frame blurred to no edges at all says nothing (NaN: ``plane.min_edge`` is not
     checked there)."""
-    from batchpose.plane import Target, _edge_credit, _Judge
+    from batchpose.method.plane import Target, _edge_credit, _Judge
 
     _, img, _, _, T = _scene(cracker_model, with_cracker=True)
     r = get_renderer()
@@ -240,12 +240,12 @@ def test_edges_stand_in_for_one_failed_colour_check(cracker_model, cracker_libra
 
 def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracker_library, monkeypatch, caplog):
     """An unexpected error in the optional stage is a warning; the records stay as the estimate made them."""
-    import batchpose.estimate
+    import batchpose.method.estimator
 
     def boom(*a, **k):
         raise RuntimeError("boom")
 
-    monkeypatch.setattr(batchpose.estimate, "support_plane", boom)
+    monkeypatch.setattr(batchpose.method.estimator, "support_plane", boom)
     frame, *_ = _scene(cracker_model, True)
     recs = []
     for enabled in (True, False):
@@ -332,7 +332,7 @@ def test_a_weak_pose_the_frame_barely_shows_is_not_kept(cracker_model, cracker_l
 def _marker_on_table(x: float, y: float, turn_deg: float):
     """A thin box (a marker) lying on the table at (x, y), turned: the plane search's target and plane, its
     pose, its pixels' (N, 2) hull corners, and a colour log-odds map with the table at -0.5 and it at 2."""
-    from batchpose.plane import Target
+    from batchpose.method.plane import Target
 
     marker = trimesh.creation.box(extents=(0.12, 0.015, 0.015))
     hull = np.asarray(marker.convex_hull.vertices)
@@ -347,7 +347,7 @@ def _marker_on_table(x: float, y: float, turn_deg: float):
 
 def _table_plane():
     """The table (world z = 0) as the plane search's support plane."""
-    from batchpose.plane import Plane
+    from batchpose.method.plane import Plane
 
     normal = CAM_FROM_WORLD[:3, 2]
     return Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))
@@ -356,7 +356,7 @@ def _table_plane():
 def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch_of_its_colours():
     """A broad patch of the object's colours nearer the camera (a shadow, a cloth) holds more of them than the
     thin object itself does: the coarse search must still offer a placement where the object stands out."""
-    from batchpose.plane import _places
+    from batchpose.method.plane import _places
 
     target, plane, T, _, odds = _marker_on_table(0.1, 0.1, 30)  # ~115 x 15 px, rows 292-357
     odds[370:, 60:580] = 2.0  # the patch
@@ -369,7 +369,7 @@ def test_the_coarse_search_keeps_a_thin_object_standing_out_beside_a_broad_patch
 def test_the_coarse_search_reaches_an_object_near_the_frames_border():
     """A marker lying crosswise 20 px above the frame's bottom edge (rows 442-461): a square kernel as wide as
     the marker is long reaches past the frame there, yet the search must offer a placement at the marker."""
-    from batchpose.plane import _places
+    from batchpose.method.plane import _places
 
     target, plane, T, px, odds = _marker_on_table(0.0, 0.3, 0)
     assert 440 <= px[:, 1].min() and px[:, 1].max() < 470
@@ -383,7 +383,7 @@ def test_refacing_offers_the_object_on_its_other_faces_at_the_same_place(cracker
     """A box placed on the wrong face (its silhouette barely differs): among its refaced poses is the box on
     the face it lies on, turned as it lies (long axis along the placement's, one way or the other), resting on
     the plane where the placement was in the image (its centre on the same viewing ray)."""
-    from batchpose.plane import Target, _refaced, _turn_deg
+    from batchpose.method.plane import Target, _refaced, _turn_deg
 
     mesh = cracker_model.mesh
     hull = np.asarray(mesh.convex_hull.vertices)

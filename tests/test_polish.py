@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig, RefineConfig, load_estimator_config
+from batchpose.core.frames import Camera
 from batchpose.errors import ConfigError
-from batchpose.estimate import PoseEstimator
-from batchpose.features import to_gray
-from batchpose.frames import Camera
-from batchpose.render import get_renderer
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.features import to_gray
+from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import add_error, compose, random_pose, textured_background
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from batchpose.config import FeatureConfig, GncConfig, RefineConfig
-from batchpose.features import detect, to_gray
-from batchpose.refine import guided_matches, refine_pose
-from batchpose.render import get_renderer
+from batchpose.method.features import detect, to_gray
+from batchpose.method.refine import guided_matches, refine_pose
+from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose, random_pose
 

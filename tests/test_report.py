@@ -19,9 +19,9 @@ import pytest
 import trimesh
 import yaml
 
-from batchpose import make_report
+from batchpose.core.poses import PoseRecord
 from batchpose.errors import DataError, MeshError
-from batchpose.poses import PoseRecord
+from batchpose.report import make_report
 
 W, H = 160, 120
 K = np.array([[200.0, 0.0, 80.0], [0.0, 200.0, 60.0], [0.0, 0.0, 1.0]])
@@ -30,7 +30,7 @@ BOX_A = np.array([0.10, 0.06, 0.04])  # obj_a: a box, points file; diameter = |B
 BOX_B = np.array([0.05, 0.05, 0.08])  # obj_b: a mesh, no points file (sampled)
 
 try:
-    import batchpose.datasets  # noqa: F401
+    import batchpose.io.folders  # noqa: F401
 
     HAVE_DATASETS = True
 except ImportError:
@@ -376,7 +376,7 @@ def test_millimetre_models_score_like_metres(tmp_path, caplog):
 
 
 def test_score_command_converts_millimetre_models(tmp_path):
-    from batchpose import bop
+    from batchpose.io import bop_csv as bop
 
     printed = []
     for sub, scale in (("m", 1.0), ("mm", 1000.0)):
@@ -435,7 +435,7 @@ def _scaled_obj(src: Path, dst_dir: Path, scale: float) -> Path:
 
 def test_unit_scale_is_load_mesh_rule(tmp_path):
     from batchpose.config import MeshConfig
-    from batchpose.mesh import load_mesh, unit_scale
+    from batchpose.io.mesh import load_mesh, unit_scale
     from tests.conftest import GELATIN
 
     mm = _scaled_obj(GELATIN, tmp_path / "mm", 1000.0)

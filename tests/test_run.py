@@ -272,7 +272,7 @@ def test_workers_share_the_cores_instead_of_each_taking_all():
     # Two workers on N cores get N // 2 OpenCV and renderer threads each; one worker keeps the defaults.
     code = (
         "import os, cv2\n"
-        "from batchpose import estimate_poses as e\n"
+        "from batchpose.stages import estimate as e\n"
         "cores = len(os.sched_getaffinity(0))\n"
         "assert e.threads_per_worker(1) is None\n"
         "assert e.threads_per_worker(2) == max(1, cores // 2), e.threads_per_worker(2)\n"
@@ -288,8 +288,8 @@ def test_workers_share_the_cores_instead_of_each_taking_all():
 def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_path, cache_dir):
     """The bundled real frames carry their depth images: rgbd.yaml takes the cracker box's 1-3 % distance
     error away (issue 7, "the depth axis"), and the output log holds the depth for Foxglove."""
-    from batchpose.datasets import open_frames
-    from batchpose.frames import decode_depth
+    from batchpose.core.frames import decode_depth
+    from batchpose.io.folders import open_frames
 
     out = tmp_path / "rgbd"
     run.main(ROOT / "pipelines" / "rgbd.yaml", DEMO, out, cache_dir=cache_dir, jobs=1)
@@ -307,8 +307,8 @@ def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_pa
 
 
 def test_a_missing_depth_topic_is_one_line_exit_2(tmp_path):
-    from batchpose.datasets import open_frames
-    from batchpose.mcap_io import write_frames_mcap
+    from batchpose.io.folders import open_frames
+    from batchpose.io.mcap_io import write_frames_mcap
 
     write_frames_mcap(open_frames({"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")}, ROOT), tmp_path / "d.mcap")
     manifest = tmp_path / "m.yaml"

@@ -17,7 +17,8 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from batchpose import convert, run
+from batchpose import run
+from batchpose.stages import convert
 from tests.conftest import ROOT
 from tests.test_mcap_io import (
     T0,

@@ -10,9 +10,10 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from batchpose import build_templates
 from batchpose.config import EstimatorConfig, RenderConfig
-from batchpose.render import get_renderer
+from batchpose.io import library
+from batchpose.method.render import get_renderer
+from batchpose.stages import build_templates
 from tests.conftest import K_SYN
 
 
@@ -43,7 +44,7 @@ def test_second_build_loads_and_renders_nothing(cracker_model, tmp_path):
     r2 = CountingRenderer()
     d2 = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r2)
     assert d2 == d1 and r2.calls == 0
-    lib = build_templates.load(d2)
+    lib = library.load(d2)
     assert lib.n_views == 12 and lib.views["n_keypoints"].sum() == len(lib.desc)
     # A different render config is a different library.
     conf2 = EstimatorConfig(render=RenderConfig(n_views=13, image_fractions=(0.5,)))
@@ -61,13 +62,13 @@ def test_a_damaged_or_half_saved_library_is_built_again(cracker_model, tmp_path)
     abandoned.mkdir()
     r = CountingRenderer()
     assert build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r) == d
-    assert r.calls == 6 and build_templates.load(d).n_views == 6 and not abandoned.exists()
+    assert r.calls == 6 and library.load(d).n_views == 6 and not abandoned.exists()
 
 
 def test_missing_gl_backend_names_the_package():
     code = (
         "from batchpose.errors import RenderError\n"
-        "from batchpose.render import Renderer\n"
+        "from batchpose.method.render import Renderer\n"
         "try:\n    Renderer()._context(64, 48)\nexcept RenderError as e:\n    print(e)\n"
     )
     env = dict(os.environ, PYOPENGL_PLATFORM="nosuchplatform")
@@ -80,8 +81,8 @@ def test_renderer_compiles_each_shader_program_once(cracker_model):
     """pyrender's own program cache misses on every render under OSMesa (its key holds a new ctypes object
     each time), so every render compiled and kept another program, 1-3 MB each: a worker's memory grew by
     ~0.7 MB a render. Ours keys by shaders and defines: flat and lit renders make two programs, however many."""
-    from batchpose.render import Renderer  # noqa: PLC0415
-    from batchpose.views import look_at  # noqa: PLC0415
+    from batchpose.method.render import Renderer  # noqa: PLC0415
+    from batchpose.method.views import look_at  # noqa: PLC0415
 
     r = Renderer()
     T = look_at(cracker_model.center_m + np.array([0.5, 0.2, 0.3]), cracker_model.center_m, np.array([0, 0, 1.0]))
@@ -100,9 +101,9 @@ def test_a_render_does_not_depend_on_what_was_rendered_before(cracker_model):
     upload textures again): the cracker box after the gelatin box, and lit after flat, is pixel for pixel
     the cracker box in a fresh renderer."""
     from batchpose.config import MeshConfig  # noqa: PLC0415
-    from batchpose.mesh import load_mesh  # noqa: PLC0415
-    from batchpose.render import Renderer  # noqa: PLC0415
-    from batchpose.views import look_at  # noqa: PLC0415
+    from batchpose.io.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.method.render import Renderer  # noqa: PLC0415
+    from batchpose.method.views import look_at  # noqa: PLC0415
     from tests.conftest import GELATIN  # noqa: PLC0415
 
     gelatin = load_mesh(GELATIN, MeshConfig(), name="009_gelatin_box")
@@ -124,8 +125,8 @@ def test_root_sift_descriptors_are_the_hellinger_map_of_sift_and_key_their_own_l
     Euclidean distance compares them by the Hellinger kernel; a library of one is never loaded for the other."""
     import dataclasses  # noqa: PLC0415
 
-    from batchpose.features import detect  # noqa: PLC0415
-    from batchpose.views import look_at  # noqa: PLC0415
+    from batchpose.method.features import detect  # noqa: PLC0415
+    from batchpose.method.views import look_at  # noqa: PLC0415
 
     T = look_at(cracker_model.center_m + np.array([0.4, 0.2, 0.3]), cracker_model.center_m, np.array([0, 0, 1.0]))
     rgb, _ = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480, "lit")
@@ -137,7 +138,7 @@ def test_root_sift_descriptors_are_the_hellinger_map_of_sift_and_key_their_own_l
     xy_s, d_s = detect(gray, sift.features)[:2]
     assert len(d_r) > 100 and np.array_equal(xy_r, xy_s)
     np.testing.assert_allclose(d_r, 512.0 * np.sqrt(d_s / d_s.sum(axis=1, keepdims=True)), rtol=1e-4, atol=1e-3)
-    key = build_templates.library_key
+    key = library.library_key
     assert key(cracker_model, root, K_SYN, 640, 480) != key(cracker_model, sift, K_SYN, 640, 480)
 
 
@@ -147,7 +148,7 @@ def test_query_only_feature_settings_share_one_library(cracker_model):
     import dataclasses  # noqa: PLC0415
 
     conf = EstimatorConfig()
-    key = build_templates.library_key
+    key = library.library_key
 
     def with_features(**kw) -> EstimatorConfig:
         return dataclasses.replace(conf, features=dataclasses.replace(conf.features, **kw))

@@ -1,4 +1,4 @@
-"""Frame-to-frame tracking (batchpose.track): a rendered clip of the bundled cracker box moving smoothly
+"""Frame-to-frame tracking (batchpose.method.track): a rendered clip of the bundled cracker box moving smoothly
 over a fixed background, run through PoseEstimator.estimate_frame as a batch worker would."""
 
 from __future__ import annotations
@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig, TrackConfig, load_estimator_config
+from batchpose.core.frames import Camera, Frame
+from batchpose.core.poses import PoseRecord
 from batchpose.errors import ConfigError
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera, Frame
-from batchpose.poses import PoseRecord
-from batchpose.render import get_renderer
-from batchpose.track import TrackResult, view_turn_deg
-from batchpose.views import look_at
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.render import get_renderer
+from batchpose.method.track import TrackResult, view_turn_deg
+from batchpose.method.views import look_at
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import add_error, textured_background
 
@@ -107,13 +107,13 @@ def test_render_anchoring_removes_flow_drift(cracker_model, cracker_library, cli
 def test_refresh_keeps_a_true_track_and_ends_a_drifted_one(cracker_model, cracker_library, clip):
     """A refresh (track.refresh_every) re-seeds a track whose pose matches the mesh in the frame, and ends
     one that has drifted farther than the NCC search reaches (here: 2 cm sideways, ~20 px)."""
-    from batchpose.track import TrackResult
+    from batchpose.method.track import TrackResult
 
     est = make_estimator(cracker_model, cracker_library)
     cam = Camera(K_SYN, 640, 480)
     img, T = clip[3]
     gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
-    from batchpose.poses import PoseRecord
+    from batchpose.core.poses import PoseRecord
 
     start = est._seed(cracker_model.name, gray, PoseRecord("", cracker_model.name, "ok", cam_from_model=T), cam)
     start.age = 32
@@ -314,7 +314,7 @@ def test_track_config_is_checked():
 
 def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
     """Seeded corners' 3D points reproject onto the corners (the lift is exact at the true pose)."""
-    from batchpose.track import seed
+    from batchpose.method.track import seed
 
     img, T = clip[0]
     rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T, K_SYN, 640, 480)
@@ -329,7 +329,7 @@ def test_seed_lifts_corners_onto_the_surface(cracker_model, clip):
 def test_tracks_flowed_together_move_as_they_would_alone(cracker_model, clip):
     """follow_all flows every track's points in shared calls: two tracks (the seeded corners split in
     halves, one keyframe) end exactly where following each alone puts them, and on the true pose."""
-    from batchpose.track import Track, follow, follow_all, seed
+    from batchpose.method.track import Track, follow, follow_all, seed
 
     (img0, T0), (img1, T1) = clip[0], clip[1]
     rgb, depth = get_renderer().render(cracker_model.content_hash, cracker_model.mesh, T0, K_SYN, 640, 480)
@@ -357,8 +357,8 @@ def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, c
     import pandas as pd
 
     from batchpose import run
-    from batchpose.frames import ObjectPose
-    from batchpose.mcap_io import write_frames_mcap
+    from batchpose.core.frames import ObjectPose
+    from batchpose.io.mcap_io import write_frames_mcap
     from tests.conftest import ROOT
 
     frames = [
@@ -445,8 +445,8 @@ def test_points_hidden_by_a_tracked_object_in_front_are_dropped(cracker_model):
     cracker's points it covers are dropped and count as never seeded: the track lives through all 15
     frames on the true pose and keeps no point on the gelatin box. Without, those points are dragged along
     or fail and the track ends."""
-    from batchpose.mesh import load_mesh
-    from batchpose.track import Track, follow_all, occluders, seed
+    from batchpose.io.mesh import load_mesh
+    from batchpose.method.track import Track, follow_all, occluders, seed
     from tests.conftest import GELATIN
 
     gelatin = load_mesh(GELATIN)
@@ -509,8 +509,8 @@ def test_an_object_whose_track_dies_young_still_counts_as_lost(cracker_model, cr
 def test_covered_counts_only_what_is_in_front(cracker_model):
     """track.covered: the gelatin box's projected hull in front of the cracker box covers part of it; the same
     box behind it covers nothing; off to the side, nothing."""
-    from batchpose.mesh import load_mesh
-    from batchpose.track import covered
+    from batchpose.io.mesh import load_mesh
+    from batchpose.method.track import covered
     from tests.conftest import GELATIN
 
     gelatin = load_mesh(GELATIN)
@@ -541,12 +541,13 @@ def test_covered_counts_only_what_is_in_front(cracker_model):
 
 @pytest.fixture(scope="module")
 def gelatin_library(cache_dir):
-    from batchpose import build_templates
-    from batchpose.mesh import load_mesh
+    from batchpose.io import library
+    from batchpose.io.mesh import load_mesh
+    from batchpose.stages import build_templates
     from tests.conftest import GELATIN
 
     gelatin = load_mesh(GELATIN)
-    return gelatin, build_templates.load(build_templates.main(gelatin, EstimatorConfig(), K_SYN, 640, 480, cache_dir))
+    return gelatin, library.load(build_templates.main(gelatin, EstimatorConfig(), K_SYN, 640, 480, cache_dir))
 
 
 @pytest.mark.parametrize(("hidden_above", "hidden_quick"), [(0.6, True), (0.6, False), (1.0, True)])

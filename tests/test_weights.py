@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
+from batchpose.method.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 
 def test_weights_match_formula_exactly():

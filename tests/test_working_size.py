@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from batchpose.config import ConfigError, EstimatorConfig, from_dict, validate
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Camera, Frame, working_camera
-from batchpose.render import get_renderer
+from batchpose.core.frames import Camera, Frame, working_camera
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import add_error, random_pose, textured_background
 

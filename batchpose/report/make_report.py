@@ -1,7 +1,7 @@
 """Stage: score a finished run and write ``RUN/report/{summary.csv, frames.csv, index.html}``.
 
 Reads the run directory the pipeline writes:
-    ``poses.parquet`` (required; :mod:`batchpose.poses` format), ``gt.parquet`` (frame_id, obj_name,
+    ``poses.parquet`` (required; :mod:`batchpose.core.poses` format), ``gt.parquet`` (frame_id, obj_name,
     obj_id, R, t_m; absent or empty = no ground truth), ``frames.parquet`` (frame_id, scene_id, im_id,
     stamp_ns, width, height, K, source), ``objects.json`` ({obj_name: {obj_id, mesh, points, diameter_m}}),
     ``config.yaml``, ``versions.json`` and ``manifest.yaml`` (its ``frames:`` spec, for the overlay gallery).
@@ -31,10 +31,10 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from batchpose import metrics
 from batchpose.config import MeshConfig, load_estimator_config
+from batchpose.core.poses import STAGES, STATUSES, row_cam_from_model
 from batchpose.errors import BatchposeError, DataError, MeshError
-from batchpose.poses import STAGES, STATUSES, row_cam_from_model
+from batchpose.report import metrics
 
 log = logging.getLogger("batchpose")
 
@@ -198,7 +198,7 @@ def _sample_mesh(mesh_path: Path, mesh_conf: MeshConfig = MeshConfig()) -> np.nd
     """(MESH_SAMPLES, 3) seeded surface samples of a mesh, metres: scaled exactly as the estimator's load_mesh."""
     import trimesh
 
-    from batchpose.mesh import unit_scale
+    from batchpose.io.mesh import unit_scale
 
     try:
         try:
@@ -222,14 +222,15 @@ def _points_to_metres(pts: np.ndarray, diameter_m: float | None, mesh_conf: Mesh
     The estimator never reads the points file, so its units are decided against the mesh the estimator used:
     the points are taken as metres when their diameter matches ``diameter_m`` (the run's metre diameter of
     the mesh), as millimetres (scaled by 0.001, the estimator's factor) when it matches 1000 times that, and
-    refused otherwise. Without a ``diameter_m`` the mesh rule (:func:`batchpose.mesh.unit_scale`) applies to
+    refused otherwise. Without a ``diameter_m`` the mesh rule (:func:`batchpose.io.mesh.unit_scale`) applies to
     the points' own bounding box.
 
     Raises:
         DataError: the points match neither scale, or are millimetres under ``mesh.on_millimetres: refuse``.
         MeshError: no ``diameter_m`` and the points look like millimetres under ``on_millimetres: refuse``.
     """
-    from batchpose.mesh import diameter, unit_scale
+    from batchpose.core.model import diameter
+    from batchpose.io.mesh import unit_scale
 
     if diameter_m is None:
         return pts * unit_scale(label, np.stack([pts.min(axis=0), pts.max(axis=0)]), mesh_conf)
@@ -283,7 +284,7 @@ def load_model_points(
 
     Points come from each object's ``points`` file (xyz text) or, when it is null, from :data:`MESH_SAMPLES`
     seeded surface samples of its ``mesh``. A mesh is scaled by the estimator's units rule
-    (:func:`batchpose.mesh.unit_scale` with ``mesh_conf``, the run's ``pipeline.mesh``); a points file is
+    (:func:`batchpose.io.mesh.unit_scale` with ``mesh_conf``, the run's ``pipeline.mesh``); a points file is
     taken as metres or millimetres by agreement with the mesh's ``diameter_m`` (see :func:`_points_to_metres`).
     Either way the points must span the object's ``diameter_m`` to within :data:`DIAMETER_TOLERANCE`.
 
@@ -295,7 +296,7 @@ def load_model_points(
         DataError: an object is not listed, its points file is unreadable, or its points disagree in scale
             with its mesh. MeshError: unreadable mesh, or a millimetre mesh under ``on_millimetres: refuse``.
     """
-    from batchpose.mesh import diameter
+    from batchpose.core.model import diameter
 
     points: dict[str, np.ndarray] = {}
     diameters: dict[str, float] = {}
@@ -793,7 +794,7 @@ def _fetch_frames(run: RunData, frame_ids: set[str]) -> tuple[dict[str, Any], st
     if spec is None:
         return {}, "manifest.yaml has no 'frames:' entry"
     try:
-        from batchpose.datasets import open_frames
+        from batchpose.io.folders import open_frames
 
         found: dict[str, Any] = {}
         for frame in open_frames(spec, run.run_dir):
@@ -877,7 +878,7 @@ def _gallery(run: RunData, per_instance: pd.DataFrame | None) -> tuple[list[dict
     frames, note = _fetch_frames(run, {c.frame_id for c in cases})
     if not frames:
         return [], note
-    from batchpose.frames import decode_image
+    from batchpose.core.frames import decode_image
 
     items = []
     counters: dict[str, int] = {}

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import MatchConfig
-from batchpose.templates import TemplateLibrary
+from batchpose.method.templates import TemplateLibrary
 
 log = logging.getLogger("batchpose")
 

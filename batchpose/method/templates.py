@@ -1,6 +1,6 @@
 """Template library: rendered views of a mesh with SIFT keypoints lifted to model-frame 3D points.
 
-Pure data and computation; :mod:`batchpose.build_templates` caches libraries on disk.
+Pure data and computation; :mod:`batchpose.stages.build_templates` caches libraries on disk.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import numpy as np
 import pandas as pd
 
 from batchpose.config import FeatureConfig, RenderConfig
-from batchpose.features import detect_shapes, make_sift, to_gray
-from batchpose.mesh import ObjectModel
-from batchpose.views import sample_views
+from batchpose.core.model import ObjectModel
+from batchpose.method.features import detect_shapes, make_sift, to_gray
+from batchpose.method.views import sample_views
 
 log = logging.getLogger("batchpose")
 
@@ -35,9 +35,9 @@ class TemplateLibrary:
         desc: (N, 128) float32 descriptors.
         pts3d: (N, 3) float32 model-frame 3D points, metres.
         shapes: (N, 2) float32 keypoint (size_px, angle_deg) in its template (see
-            :func:`batchpose.features.detect_shapes`).
+            :func:`batchpose.method.features.detect_shapes`).
         folder: the cache folder it was loaded from (None when built in memory); its descriptor index is
-            kept there too (:func:`batchpose.correspondences.flann_index`).
+            kept there too (:func:`batchpose.method.correspondences.flann_index`).
     """
 
     obj_name: str
@@ -114,7 +114,7 @@ def render_templates(
     """Render every view, run SIFT on the object's box and lift keypoints to 3D.
 
     Args:
-        renderer: a :class:`batchpose.render.Renderer`.
+        renderer: a :class:`batchpose.method.render.Renderer`.
         progress: optional callable(n) called after each view.
     """
     distances = auto_distances(model, K, width, height, render_conf)

@@ -53,7 +53,7 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     finished pairs would be stale.
 
     Args:
-        source: a frame source (``batchpose.datasets.open_frames``).
+        source: a frame source (``batchpose.io.folders.open_frames``).
         objects: object names of interest (ground truth of other objects is not kept).
         limit: index only the first ``limit`` frames.
 

@@ -11,7 +11,7 @@ by Levenberg-Marquardt from the previous pose, trimming points whose reprojectio
 (:func:`anchor_to_render`) the points are found again by NCC against the mesh rendered at the tracked pose,
 which removes drift altogether. A track ends (the next frame is estimated afresh) when fewer than
 ``min_fraction`` of its seeded points survive, at a scene change or a gap in time. Pure computation: the
-caller (:class:`batchpose.estimate.PoseEstimator`) keeps one :class:`Track` per object and decides when
+caller (:class:`batchpose.method.estimator.PoseEstimator`) keeps one :class:`Track` per object and decides when
 tracks start, end and are refreshed.
 """
 
@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import TrackConfig
-from batchpose.templates import lift_keypoints
+from batchpose.method.templates import lift_keypoints
 
 
 @dataclass

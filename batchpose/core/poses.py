@@ -7,7 +7,7 @@ Table columns (one row per (frame, object)):
     R (list of 9 float, row-major, model->camera), t_m (list of 3 float, metres; NaN when failed),
     confidence (float in [0, 1]), n_matches (int), n_inliers (int), median_residual_px (float),
     templates (str, space-separated template view ids), inliers_px (list of float, x0 y0 x1 y1 ...),
-    tracked (bool: followed from the previous frame by :mod:`batchpose.track`, not estimated afresh),
+    tracked (bool: followed from the previous frame by :mod:`batchpose.method.track`, not estimated afresh),
     time_<stage>_s (float) for each stage in :data:`STAGES`, time_total_s (float).
 """
 

@@ -1,6 +1,6 @@
 """Folder data set readers (YCB-Video, BOP, plain images) and the ``frames:`` manifest factory.
 
-Every reader yields :class:`~batchpose.frames.Frame` lazily, one file read per frame: listing the
+Every reader yields :class:`~batchpose.core.frames.Frame` lazily, one file read per frame: listing the
 frames (``count()``) touches only directory entries and small index files, never image pixels.
 Images stay encoded (PNG/JPEG bytes as stored on disk).
 
@@ -15,7 +15,7 @@ Layouts:
     ``rgb/<im_id:06d>.png|jpg``.
     ``images``: a folder of ``.png`` / ``.jpg`` files plus an intrinsics YAML with ``fx, fy, cx, cy,
     width, height`` and optional ``dist`` (OpenCV order) and ``distortion_model``.
-    ``mcap``: see :mod:`batchpose.mcap_io`.
+    ``mcap``: see :mod:`batchpose.io.mcap_io`.
 
 Folder data sets carry no capture times, so ``stamp_ns`` is synthetic: ``index * 33_333_333`` (30 Hz
 from 0), in listing order.
@@ -43,8 +43,8 @@ import scipy.io
 import yaml
 from scipy.io.matlab import MatReadError
 
+from batchpose.core.frames import Camera, Frame, ObjectPose
 from batchpose.errors import CameraError, ConfigError, DataError
-from batchpose.frames import Camera, Frame, ObjectPose
 
 log = logging.getLogger("batchpose")
 
@@ -682,7 +682,7 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
     elif fmt == "images":
         source = ImagesFrameSource(resolve("root"), resolve("intrinsics") if spec.get("intrinsics") else None)
     else:
-        from batchpose.mcap_io import McapFrameSource  # only mcap_io imports mcap
+        from batchpose.io.mcap_io import McapFrameSource  # only mcap_io imports mcap
 
         for key in ("image_topic", "calibration_topic", "depth_topic"):
             if spec.get(key) is not None and not isinstance(spec[key], str):

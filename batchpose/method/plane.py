@@ -62,7 +62,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import PlaneConfig
-from batchpose.search import N_BINS, colour_bins, texture_match
+from batchpose.method.appearance import N_BINS, colour_bins, texture_match
 
 #: The coarse search's resolution (every LEVEL-th pixel).
 LEVEL = 4
@@ -214,7 +214,7 @@ class Target:
     centre: np.ndarray  # model frame
     diameter_m: float
     faces: tuple[np.ndarray, ...]  # resting faces' outward normals (model frame)
-    hist: np.ndarray  # colour histogram (see batchpose.search.colour_bins)
+    hist: np.ndarray  # colour histogram (see batchpose.method.depth_search.colour_bins)
 
 
 class _Judge:

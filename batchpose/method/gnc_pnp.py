@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 
 from batchpose.config import GncConfig
-from batchpose.metrics import rotation_error_deg
+from batchpose.core.geometry import rotation_error_deg
 
 
 @dataclass

@@ -15,7 +15,12 @@ import cv2
 import numpy as np
 
 from batchpose.config import EstimatorConfig
-from batchpose.correspondences import (
+from batchpose.core.frames import Camera, Frame, ObjectPose, decode_depth, decode_image, working_camera
+from batchpose.core.geometry import rotation_error_deg
+from batchpose.core.poses import PoseRecord
+from batchpose.errors import BatchposeError, ImageError
+from batchpose.method.appearance import texture_match
+from batchpose.method.correspondences import (
     Correspondences,
     flann_index,
     locate,
@@ -26,19 +31,15 @@ from batchpose.correspondences import (
     top_k_pairs,
     vote_views,
 )
-from batchpose.depth import Surface, align_to_depth
-from batchpose.errors import BatchposeError, ImageError
-from batchpose.features import detect, detect_shapes, make_sift, to_gray
-from batchpose.frames import Camera, Frame, ObjectPose, decode_depth, decode_image, working_camera
-from batchpose.gnc_pnp import planar_alternative, solve_pose
-from batchpose.metrics import rotation_error_deg
-from batchpose.plane import Target, resting_faces, search_plane, stable_faces, support_plane
-from batchpose.poses import PoseRecord
-from batchpose.refine import refine_pose
-from batchpose.search import Silhouettes, distinct_matches, search, texture_match
-from batchpose.templates import TemplateLibrary
-from batchpose.track import Track, anchor_to_render, covered, follow_all, occluders, seed, view_turn_deg
-from batchpose.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
+from batchpose.method.depth import Surface, align_to_depth
+from batchpose.method.depth_search import Silhouettes, distinct_matches, search
+from batchpose.method.features import detect, detect_shapes, make_sift, to_gray
+from batchpose.method.gnc_pnp import planar_alternative, solve_pose
+from batchpose.method.plane import Target, resting_faces, search_plane, stable_faces, support_plane
+from batchpose.method.refine import refine_pose
+from batchpose.method.templates import TemplateLibrary
+from batchpose.method.track import Track, anchor_to_render, covered, follow_all, occluders, seed, view_turn_deg
+from batchpose.method.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
 log = logging.getLogger("batchpose")
 #: Statuses of an object the frame shows no pose of, which ``depth.search`` looks for.
@@ -126,7 +127,7 @@ class PoseEstimator:
         libraries: obj_name -> TemplateLibrary.
         obj_ids: obj_name -> numeric id for records (BOP obj_id); optional.
         models: obj_name -> ObjectModel, needed (with ``renderer``) for ``refine.enabled``.
-        renderer: a :class:`batchpose.render.Renderer` (or anything with its ``render`` method).
+        renderer: a :class:`batchpose.method.render.Renderer` (or anything with its ``render`` method).
     """
 
     def __init__(
@@ -651,8 +652,8 @@ class PoseEstimator:
     def _polish(self, name: str, gray: np.ndarray, T: np.ndarray, camera: Camera) -> np.ndarray:
         """``refine.polish``: align the pose ``T`` to the frame by the mesh rendered there, ``polish_rounds``
         times: corners of the frame on the render's silhouette where the two look alike
-        (:func:`batchpose.track.seed`) are found again in the render by patch correlation and the pose is
-        solved on them (:func:`batchpose.track.anchor_to_render`). Returns the last pose found (``T`` when
+        (:func:`batchpose.method.track.seed`) are found again in the render by patch correlation and the pose is
+        solved on them (:func:`batchpose.method.track.anchor_to_render`). Returns the last pose found (``T`` when
         the first round finds too few corners)."""
         rf = self.conf.refine
         tc = dataclasses.replace(self.conf.track, render_search_px=rf.polish_search_px, min_fraction=0.0)
@@ -844,7 +845,7 @@ class PoseEstimator:
     def _refresh(self, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), lab: np.ndarray | None = None):
         """A new keyframe at the tracked pose, checked against the mesh: the mesh rendered there must look like
         the frame (:meth:`_looks_alike`, given the frame's Lab image ``lab``), then the points are pulled onto
-        it (:func:`batchpose.track.anchor_to_render`) and corners are seeded afresh at the pulled pose. None
+        it (:func:`batchpose.method.track.anchor_to_render`) and corners are seeded afresh at the pulled pose. None
         when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
         rgb, depth = self._render(name, res.track.cam_from_model, camera)
         if lab is not None and not self._looks_alike(lab, rgb, depth, hidden):
@@ -860,7 +861,7 @@ class PoseEstimator:
         return anchored
 
     def _estimate_tracked(self, rgb: np.ndarray, frame: Frame, obj_names: list[str]) -> list[PoseRecord]:
-        """:meth:`estimate_image` that follows live tracks instead (see :mod:`batchpose.track`)."""
+        """:meth:`estimate_image` that follows live tracks instead (see :mod:`batchpose.method.track`)."""
         camera, tc = frame.camera, self.conf.track
         camera.validate(frame.frame_id)
         check_image(rgb, frame.frame_id)
@@ -1019,7 +1020,7 @@ class PoseEstimator:
 
     def _hidden(self, poses: list[np.ndarray], names: list[str], camera: Camera) -> list[list] | None:
         """``track.occlusion_margin_px``: what may hide each of the objects at ``poses``
-        (:func:`batchpose.track.occluders`); None when off or with fewer than two objects."""
+        (:func:`batchpose.method.track.occluders`); None when off or with fewer than two objects."""
         margin = self.conf.track.occlusion_margin_px
         if margin < 0 or len(poses) < 2 or any(n not in self.models for n in names):
             return None
@@ -1028,7 +1029,7 @@ class PoseEstimator:
 
     def _use_depth(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``depth.enabled``: check each found pose against the frame's depth image and align it to the depth
-        (:func:`batchpose.depth.align_to_depth`). Tracks keep following the RGB poses. A pose the depth
+        (:func:`batchpose.method.depth.align_to_depth`). Tracks keep following the RGB poses. A pose the depth
         contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in ``reason``; a
         low-confidence pose (``min_confidence``) it aligns is reported ok. With ``depth.search``, an object then
         without a pose is looked for by colour and depth."""
@@ -1091,8 +1092,8 @@ class PoseEstimator:
             rec.timings["depth"] = rec.timings.get("depth", 0.0) + time.perf_counter() - t0
 
     def _search(self, rec: PoseRecord, frame: Frame, rgb: np.ndarray, depth: np.ndarray, why: str) -> None:
-        """``depth.search`` for one object without a pose (:func:`batchpose.search.search`); ``why`` it has none
-        goes into the reason of a pose found."""
+        """``depth.search`` for one object without a pose (:func:`batchpose.method.depth_search.search`);
+        ``why`` it has none goes into the reason of a pose found."""
         name, cam = rec.obj_name, frame.camera
         found = search(
             rgb,
@@ -1120,7 +1121,8 @@ class PoseEstimator:
         )
 
     def _silhouettes_of(self, name: str) -> Silhouettes:
-        """The object's colour histogram and view silhouettes (:class:`batchpose.search.Silhouettes`), made once."""
+        """The object's colour histogram and view silhouettes
+        (:class:`batchpose.method.depth_search.Silhouettes`), made once."""
         if name not in self._silhouettes:
             lib = self.libraries[name]
             self._silhouettes[name] = Silhouettes.of(
@@ -1227,7 +1229,7 @@ class PoseEstimator:
 
     def _use_plane(self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord]) -> None:
         """``plane.enabled``: look for each object without a pose on the surface the confidently found ones rest
-        on (:mod:`batchpose.plane`)."""
+        on (:mod:`batchpose.method.plane`)."""
         pc = self.conf.plane
         if self.renderer is None:
             return
@@ -1295,7 +1297,7 @@ class PoseEstimator:
             )
 
     def _stable_faces(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """The faces the object can rest on (:func:`batchpose.plane.stable_faces`; made once)."""
+        """The faces the object can rest on (:func:`batchpose.method.plane.stable_faces`; made once)."""
         if name not in self._stable:
             self._stable[name] = stable_faces(self.models[name].mesh)
         return self._stable[name]

@@ -19,9 +19,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from batchpose.config import FeatureConfig, GncConfig, RefineConfig
-from batchpose.features import detect, to_gray
-from batchpose.gnc_pnp import PnpResult, solve_pose
-from batchpose.templates import lift_keypoints
+from batchpose.method.features import detect, to_gray
+from batchpose.method.gnc_pnp import PnpResult, solve_pose
+from batchpose.method.templates import lift_keypoints
 
 RenderFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 

@@ -19,13 +19,13 @@ import joblib
 import pandas as pd
 from tqdm import tqdm
 
-from batchpose import build_templates
 from batchpose.config import EstimatorConfig, config_hash, load_estimator_config
-from batchpose.estimate import PoseEstimator
-from batchpose.frames import Frame
-from batchpose.ingest_frames import write_parquet_atomic
-from batchpose.mesh import load_mesh
-from batchpose.workers import loky_options
+from batchpose.core.frames import Frame
+from batchpose.io import library
+from batchpose.io.mesh import load_mesh
+from batchpose.method.estimator import PoseEstimator
+from batchpose.stages.ingest import write_parquet_atomic
+from batchpose.stages.workers import loky_options
 
 log = logging.getLogger("batchpose")
 
@@ -40,14 +40,14 @@ def _estimator(
     mesh_cache: str | None = None,
 ) -> PoseEstimator:
     """The worker's estimator, built on first use and kept for the rest of the run (``mesh_cache``: the
-    cache folder :func:`batchpose.mesh.load_mesh` keeps loaded meshes in, or None)."""
+    cache folder :func:`batchpose.io.mesh.load_mesh` keeps loaded meshes in, or None)."""
     key = config_hash(conf_dict, lib_dirs, mesh_paths)
     if _WORKER.get("key") != key:
         conf = load_estimator_config(conf_dict)
-        libs = {name: build_templates.load(Path(d)) for name, d in lib_dirs.items()}
+        libs = {name: library.load(Path(d)) for name, d in lib_dirs.items()}
         models, renderer = {}, None
         if conf.refine.enabled or conf.track.enabled:
-            from batchpose.render import get_renderer
+            from batchpose.method.render import get_renderer
 
             cache = Path(mesh_cache) if mesh_cache else None
             models = {name: load_mesh(Path(p), conf.mesh, name=name, cache_dir=cache) for name, p in mesh_paths.items()}
@@ -179,13 +179,13 @@ def main(
         conf_dict: the pipeline config as a plain dict (sent to workers).
         lib_dirs: object name -> template library folder.
         mesh_paths: object name -> mesh file (workers load it to render for refinement).
-        targets_mode: "annotations" or "all" (see :mod:`batchpose.manifest`).
+        targets_mode: "annotations" or "all" (see :mod:`batchpose.io.manifest`).
         backend: joblib backend ("loky", or "dask" inside a ``dask.distributed`` client context).
         max_pairs: stop after about this many newly estimated pairs (used to test resuming).
         threads: OpenCV / renderer threads per worker (see :func:`limit_threads`; None: their defaults).
         frame_ids: the frames this run covers (``frames.parquet``); shards of other frames (an earlier
             run with a larger ``--limit``) stay on disk but are left out of ``poses.parquet``.
-        mesh_cache: the cache folder workers load meshes through (:func:`batchpose.mesh.load_mesh`).
+        mesh_cache: the cache folder workers load meshes through (:func:`batchpose.io.mesh.load_mesh`).
     """
     run_dir = Path(run_dir)
     out = run_dir / "poses.parquet"
@@ -266,7 +266,7 @@ def merge_shards(shard_dir: Path) -> pd.DataFrame:
     """All shard rows, one per (frame, object), in a deterministic order."""
     parts = [pd.read_parquet(p) for p in sorted(Path(shard_dir).glob("shard-*.parquet"))]
     if not parts:
-        from batchpose.poses import PoseRecord
+        from batchpose.core.poses import PoseRecord
 
         return pd.DataFrame(columns=list(PoseRecord("", "", "ok").to_row()))
     df = pd.concat(parts, ignore_index=True)

@@ -1,7 +1,7 @@
 """MCAP in and out: the only module that imports ``mcap`` (and its protobuf / ROS 1 / ROS 2 support).
 
 Reading (:class:`McapFrameSource`): images from ``foxglove.CompressedImage`` (jpeg, png),
-``foxglove.RawImage`` (the encodings of :data:`batchpose.frames.RAW_ENCODINGS`: rgb8, bgr8, rgba8, bgra8,
+``foxglove.RawImage`` (the encodings of :data:`batchpose.core.frames.RAW_ENCODINGS`: rgb8, bgr8, rgba8, bgra8,
 mono8, mono16, Bayer mosaics, 4:2:2 YUV), ``sensor_msgs/msg/Image`` and ``sensor_msgs/msg/CompressedImage``
 (ROS 2 cdr) or ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` (ROS 1, as ``mcap convert`` writes
 a bag; big-endian 16-bit images are byte-swapped), or ``foxglove.CompressedVideo`` (h264, h265, vp9, av1;
@@ -89,10 +89,10 @@ from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
-from batchpose.datasets import FrameSource, image_size, one_line
+from batchpose.core.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth, distortion_problem
+from batchpose.core.poses import row_cam_from_model
 from batchpose.errors import BatchposeError, CameraError, ConfigError, DataError, ImageError
-from batchpose.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth, distortion_problem
-from batchpose.poses import row_cam_from_model
+from batchpose.io.folders import FrameSource, image_size, one_line
 
 try:  # zstd is how chunks are usually compressed; its errors mean a corrupt chunk
     from zstandard import ZstdError
@@ -948,7 +948,7 @@ class McapFrameSource(FrameSource):
         Raises:
             DataError: the message does not parse or lacks a field.
             CameraError: the images are rectified and the message has no usable P, or they are not and its
-                distortion is not one OpenCV's pinhole model takes (:func:`batchpose.frames.distortion_problem`).
+                distortion is not one OpenCV's pinhole model takes (:func:`batchpose.core.frames.distortion_problem`).
         """
         msg = self.decode(schema, channel, message)
         try:

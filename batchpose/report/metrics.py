@@ -18,8 +18,9 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from batchpose.core.geometry import check_rotation, rotation_error_deg
+from batchpose.core.poses import STATUSES
 from batchpose.errors import DataError
-from batchpose.poses import STATUSES
 
 log = logging.getLogger("batchpose")
 
@@ -53,11 +54,6 @@ SUMMARY_COLUMNS = (
 )
 
 
-def _check_rotation(R: np.ndarray, name: str) -> np.ndarray:
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape != (3, 3):
-        raise ValueError(f"{name} must have shape (3, 3), got {R.shape}")
-    return R
 
 
 def _check_translation(t: np.ndarray, name: str) -> np.ndarray:
@@ -92,8 +88,8 @@ def add(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarray
         Mean of ``||(R_est x + t_est) - (R_gt x + t_gt)||`` over the points, metres.
     """
     pts = _check_points(pts)
-    est = _transform(_check_rotation(R_est, "R_est"), _check_translation(t_est, "t_est"), pts)
-    gt = _transform(_check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), pts)
+    est = _transform(check_rotation(R_est, "R_est"), _check_translation(t_est, "t_est"), pts)
+    gt = _transform(check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), pts)
     return float(np.linalg.norm(est - gt, axis=1).mean())
 
 
@@ -111,27 +107,12 @@ def adds(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarra
         Mean nearest-neighbour distance (KD-tree over the estimated-pose points), metres.
     """
     pts = _check_points(pts)
-    est = _transform(_check_rotation(R_est, "R_est"), _check_translation(t_est, "t_est"), pts)
-    gt = _transform(_check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), pts)
+    est = _transform(check_rotation(R_est, "R_est"), _check_translation(t_est, "t_est"), pts)
+    gt = _transform(check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), pts)
     dist, _ = cKDTree(est).query(gt, k=1)
     return float(np.mean(dist))
 
 
-def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> float:
-    """Angle of the relative rotation ``R_est^T R_gt``.
-
-    Args:
-        R_est: (3, 3) estimated rotation.
-        R_gt: (3, 3) ground-truth rotation.
-
-    Returns:
-        Rotation error in degrees, in [0, 180].
-    """
-    R_est = _check_rotation(R_est, "R_est")
-    R_gt = _check_rotation(R_gt, "R_gt")
-    cos = (np.trace(R_est.T @ R_gt) - 1.0) / 2.0
-    # Round-off can push the cosine just outside [-1, 1] for (near-)identical rotations.
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def translation_error_mm(t_est: np.ndarray, t_gt: np.ndarray) -> float:
@@ -306,7 +287,7 @@ def score(
     """Score estimates against ground truth, one ground-truth instance at a time.
 
     Args:
-        est: estimates in the ``poses.parquet`` format (:mod:`batchpose.poses`); needs frame_id, obj_name,
+        est: estimates in the ``poses.parquet`` format (:mod:`batchpose.core.poses`); needs frame_id, obj_name,
             status, R, t_m, confidence. A ground-truth instance with no row, or a row whose status is not
             ``ok``, gets distance +inf. Estimates without ground truth are ignored.
         gt: one row per ground-truth instance: frame_id, obj_name, R (9 numbers, row-major, model ->

@@ -2,8 +2,8 @@
 
 The log holds ``/camera/image`` (foxglove.CompressedImage, the PNG/JPEG bytes copied, never
 re-encoded), ``/camera/calibration`` (foxglove.CameraCalibration) and, when the data set has ground
-truth, ``/ground_truth/poses`` (see :mod:`batchpose.mcap_io`). Reading the log back with
-:class:`~batchpose.mcap_io.McapFrameSource` gives the same pixels, K and ground truth.
+truth, ``/ground_truth/poses`` (see :mod:`batchpose.io.mcap_io`). Reading the log back with
+:class:`~batchpose.io.mcap_io.McapFrameSource` gives the same pixels, K and ground truth.
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from batchpose.datasets import FrameSource, image_size, open_frames
+from batchpose.core.frames import Frame
 from batchpose.errors import ConfigError, DataError, ImageError
-from batchpose.frames import Frame
-from batchpose.mcap_io import write_frames_mcap
+from batchpose.io.folders import FrameSource, image_size, open_frames
+from batchpose.io.mcap_io import write_frames_mcap
 
 log = logging.getLogger("batchpose")
 

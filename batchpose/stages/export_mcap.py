@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from batchpose.mesh import ObjectModel
+from batchpose.core.model import ObjectModel
 
 log = logging.getLogger("batchpose")
 
@@ -21,7 +21,7 @@ def main(
     overwrite: bool = False,
 ) -> Path:
     """Write ``run_dir/poses.mcap``; skipped when it is newer than ``poses_path``. Returns its path."""
-    from batchpose import mcap_io
+    from batchpose.io import mcap_io
 
     out = Path(run_dir) / "poses.mcap"
     if out.is_file() and not overwrite and out.stat().st_mtime >= Path(poses_path).stat().st_mtime:

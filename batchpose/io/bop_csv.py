@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from batchpose import metrics
 from batchpose.errors import DataError
+from batchpose.report import metrics
 
 log = logging.getLogger("batchpose")
 
@@ -39,7 +39,7 @@ def poses_to_bop(poses: pd.DataFrame, time_per: str = "image") -> pd.DataFrame:
     """Convert a ``poses.parquet`` table to the BOP table (ok rows with a finite pose only).
 
     Args:
-        poses: table in the :mod:`batchpose.poses` format.
+        poses: table in the :mod:`batchpose.core.poses` format.
         time_per: "image" (sum of ``time_total_s`` over the image's rows, as bop_toolkit requires) or
             "row" (each row's own ``time_total_s``). Without a ``time_total_s`` column the time is -1.
 
@@ -285,7 +285,7 @@ def score_bop_csv(
 
     Args:
         csv_path: BOP results CSV.
-        gt: ground-truth table (frame_id, obj_name, R, t_m; see :func:`batchpose.metrics.score`) with
+        gt: ground-truth table (frame_id, obj_name, R, t_m; see :func:`batchpose.report.metrics.score`) with
             scene_id and im_id columns, or give ``frames``.
         points: obj_name -> (N, 3) model points, metres.
         diameters: obj_name -> diameter, metres.
@@ -294,7 +294,7 @@ def score_bop_csv(
             frame ids when ``gt`` has no scene_id / im_id.
 
     Returns:
-        ``(per_instance, summary)`` as :func:`batchpose.metrics.score` returns them.
+        ``(per_instance, summary)`` as :func:`batchpose.report.metrics.score` returns them.
 
     Raises:
         DataError: malformed CSV (file and line named), or no way to map images to ground-truth frames.

@@ -1,0 +1,1 @@
+"""Data every layer shares: frames and cameras, pose records, object models, rigid geometry."""
