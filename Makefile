@@ -3,11 +3,16 @@ SHELL := /bin/bash
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.batchpose-installed
+# Exact versions (with hashes) for Python 3.11 on Linux x86_64, made from pyproject.toml by `make lock`.
+LOCK := requirements.lock
+LOCK_OVERRIDES := requirements-overrides.txt
+# uv is only the lock tool: `make lock` puts it in $(VENV); it is no dependency of batchpose.
+UV_VERSION ?= 0.13.9
 APT_PACKAGES := libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 export PYOPENGL_PLATFORM ?= osmesa
 
-.PHONY: setup system-packages demo test lint clean-demo
+.PHONY: setup system-packages lock lock-upgrade demo test lint clean-demo
 
 setup: system-packages $(STAMP)
 
@@ -19,14 +24,28 @@ system-packages:
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq --no-install-recommends $(APT_PACKAGES); \
 	fi
 
-# pyrender 0.1.45 pins PyOpenGL 3.1.0, whose OSMesa binding is broken; 3.1.10 must come in a second
-# pip command (SPEC.md §1). pip then warns about the pin; that is expected.
-$(STAMP): pyproject.toml
+# Installs the lock as it is (--no-deps), then batchpose itself without its dependencies: pyrender 0.1.45
+# pins PyOpenGL 3.1.0, whose OSMesa binding is broken, and the lock overrides it with 3.1.10 (SPEC.md §1;
+# `pip check` reports that pin, as expected). Re-installs when the lock or pyproject.toml changes.
+$(STAMP): pyproject.toml $(LOCK)
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
-	$(PY) -m pip install -q 'PyOpenGL==3.1.10' 2>&1 | grep -v "incompatible" || true
+	$(PY) -m pip install -q --no-deps -r $(LOCK)
+	$(PY) -m pip install -q --no-deps -e .
 	touch $(STAMP)
+
+# Re-resolves the lock from pyproject.toml (with the dev extra and $(LOCK_OVERRIDES)), keeping every
+# version already pinned that still fits; `make lock-upgrade` moves everything to the newest allowed.
+# Then `make setup` installs it.
+lock:
+	@[ -x $(PY) ] || python3 -m venv $(VENV)
+	@$(PY) -m pip install -q 'uv==$(UV_VERSION)'
+	$(VENV)/bin/uv pip compile pyproject.toml --extra dev --override $(LOCK_OVERRIDES) \
+		--python-version 3.11 --python-platform x86_64-manylinux_2_28 --generate-hashes \
+		--custom-compile-command 'make lock' --quiet $(UV_ARGS) -o $(LOCK)
+
+lock-upgrade:
+	$(MAKE) lock UV_ARGS=--upgrade
 
 demo: setup
 	$(VENV)/bin/batchpose run pipelines/gnc_pose.yaml --manifest data_manifest/demo.yaml --out runs/demo
