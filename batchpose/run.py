@@ -23,6 +23,7 @@ from batchpose.config import apply_overrides, load_estimator_config, load_yaml, 
 from batchpose.core.frames import Camera, working_camera
 from batchpose.errors import CameraError, ConfigError
 from batchpose.io import library
+from batchpose.io.files import write_text_atomic
 from batchpose.io.manifest import load_manifest
 from batchpose.io.mesh import load_mesh
 from batchpose.stages import build_templates, export_mcap
@@ -102,7 +103,7 @@ def _comparable(resolved: dict) -> dict:
     """A run's saved config without what may change between runs in one directory: the mesh hashes (checked
     on their own) and which of the data set's frames it uses (``frames:`` keys :data:`SELECT_KEYS`, like
     ``--limit``: ingest indexes the frames anew and the pairs already estimated are kept)."""
-    from batchpose.io.folders import SELECT_KEYS  # noqa: PLC0415
+    from batchpose.io.sources import SELECT_KEYS  # noqa: PLC0415
 
     out = {**resolved, "meshes": None}
     manifest = out.get("manifest")
@@ -169,9 +170,7 @@ def _template_camera(frames_index: pd.DataFrame, manifest: Path, max_side_px: in
 
 
 def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    write_text_atomic(path, text, encoding=None)
 
 
 @contextlib.contextmanager
@@ -214,7 +213,7 @@ def main(
     report: bool = True,
 ) -> Path:
     """Run the whole pipeline; returns ``run_dir``."""
-    from batchpose.io.folders import SelectedFrames, open_frames
+    from batchpose.io.sources import SelectedFrames, open_frames
 
     t_start = time.perf_counter()
     if jobs < 1:

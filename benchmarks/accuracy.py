@@ -50,9 +50,9 @@ COLUMNS = [
 def warm_cache(manifest: str, pipeline: str, overrides: list[str], cache: str) -> float:
     """Build the pipeline's template libraries (in a child process); returns seconds."""
     from batchpose.config import apply_overrides, load_estimator_config, load_yaml  # noqa: PLC0415
-    from batchpose.io.folders import open_frames  # noqa: PLC0415
     from batchpose.io.manifest import load_manifest  # noqa: PLC0415
     from batchpose.io.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.io.sources import open_frames  # noqa: PLC0415
 
     conf = load_estimator_config(apply_overrides(load_yaml(Path(pipeline)), list(overrides)))
     man = load_manifest(Path(manifest))

@@ -28,8 +28,8 @@ from _common import REPO  # noqa: E402,F401  (puts the repo on sys.path)
 
 from batchpose.core.frames import decode_image  # noqa: E402
 from batchpose.core.poses import row_cam_from_model  # noqa: E402
-from batchpose.io.folders import open_frames  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402
 
 SHIFTS = (-0.03, -0.015, 0.015, 0.03)

@@ -65,9 +65,9 @@ from batchpose.core.frames import decode_image  # noqa: E402
 from batchpose.core.poses import STAGES  # noqa: E402
 from batchpose.io import bop_csv as bop  # noqa: E402,I001
 from batchpose.io import library, mcap_io
-from batchpose.io.folders import open_frames  # noqa: E402
 from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.estimator import PoseEstimator  # noqa: E402
 from batchpose.method.features import detect, make_sift, to_gray  # noqa: E402
 from batchpose.report import make_report  # noqa: E402,I001

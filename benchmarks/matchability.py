@@ -32,9 +32,9 @@ from _common import code_version, machine, table  # noqa: E402
 from batchpose.config import load_estimator_config, load_yaml  # noqa: E402
 from batchpose.core.frames import decode_image  # noqa: E402
 from batchpose.io import library
-from batchpose.io.folders import open_frames  # noqa: E402
 from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.features import detect_shapes, make_sift, to_gray  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402
 from batchpose.method.templates import lift_keypoints  # noqa: E402

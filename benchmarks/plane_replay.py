@@ -38,9 +38,9 @@ from batchpose.config import apply_overrides, load_estimator_config, load_yaml  
 from batchpose.core.frames import decode_image  # noqa: E402
 from batchpose.core.poses import PoseRecord  # noqa: E402
 from batchpose.io import library
-from batchpose.io.folders import open_frames  # noqa: E402
 from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.estimator import PoseEstimator  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402
 from batchpose.report.metrics import adds  # noqa: E402

@@ -36,8 +36,8 @@ from _common import REPO  # noqa: E402  (puts the repo on sys.path)
 from batchpose.config import load_estimator_config, load_yaml  # noqa: E402
 from batchpose.core.frames import decode_image  # noqa: E402
 from batchpose.io import library
-from batchpose.io.folders import open_frames  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.depth_search import pose_from_view  # noqa: E402
 from batchpose.method.features import to_gray  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402

@@ -29,9 +29,9 @@ from _common import MB, REPO, RssSampler, StageTimer, code_version, default_mani
 
 from batchpose.config import apply_overrides, load_estimator_config, load_yaml  # noqa: E402
 from batchpose.io import library
-from batchpose.io.folders import open_frames  # noqa: E402
 from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
+from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method import templates  # noqa: E402
 from batchpose.method.correspondences import flann_index  # noqa: E402
 from batchpose.method.render import Renderer, get_renderer  # noqa: E402

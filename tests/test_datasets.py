@@ -14,16 +14,10 @@ import pytest
 import scipy.io
 import yaml
 
-from batchpose.core.frames import decode_image
+from batchpose.core.frames import decode_image, image_size
 from batchpose.errors import CameraError, ConfigError, DataError, ImageError
-from batchpose.io.folders import (
-    FRAME_PERIOD_NS,
-    BopFrameSource,
-    ImagesFrameSource,
-    YcbvFrameSource,
-    image_size,
-    open_frames,
-)
+from batchpose.io.folders import FRAME_PERIOD_NS, BopFrameSource, ImagesFrameSource, YcbvFrameSource
+from batchpose.io.sources import open_frames
 
 SHARED_YCBV = Path(__file__).resolve().parents[2] / "shared" / "data" / "ycbv_dev"
 K = np.array([[500.0, 0.0, 15.5], [0.0, 510.0, 11.5], [0.0, 0.0, 1.0]])
@@ -327,8 +321,12 @@ def test_image_size_png_and_jpeg():
 @pytest.mark.skipif(not SHARED_YCBV.is_dir(), reason=f"shared YCB-Video dev data not at {SHARED_YCBV}")
 def test_shared_ycbv_dev():
     src = open_frames({"format": "ycbv", "root": str(SHARED_YCBV)}, base_dir=Path.cwd())
-    assert src.count() == 21
-    f = next(iter(src))
+    # 20 consecutive real frames of each of videos 0000, 0001 and 0049, and 6 synthetic ones
+    frames = list(src)
+    assert src.count() == len(frames) == 66
+    assert sum(f.frame_id.startswith("data_syn/") for f in frames) == 6
+    assert {f.frame_id.split("/")[0] for f in frames} == {"0000", "0001", "0049", "data_syn"}
+    f = frames[0]
     assert f.frame_id == "0000/000001" and (f.camera.width, f.camera.height) == (640, 480)
     assert f.camera.K[0, 0] == pytest.approx(1066.778)
     assert "009_gelatin_box" in [g.obj_name for g in f.gt]

@@ -270,7 +270,7 @@ def _raw_depth(t_header: int, mm: np.ndarray, encoding: str = "16UC1", frame_id:
 
 def test_mcap_depth_topic_pairs_by_header_stamp(tmp_path):
     """Depth logged after its image and a few ms off is paired; a depth 40 ms away is not anyone's."""
-    from batchpose.io.folders import open_frames
+    from batchpose.io.sources import open_frames
     from tests.test_mcap_io import DT, T0, H, Log, W, _calib, _cimg, _enc, _img
 
     rng = np.random.default_rng(0)
@@ -316,7 +316,7 @@ def _compressed_depth(depth_m: np.ndarray, encoding: str) -> bytes:
 def test_ros_compressed_depth_topic(tmp_path, encoding):
     """A ROS 1 log with its depth on .../compressedDepth (format "16UC1; compressedDepth png" or 32FC1's
     quantised inverse depth): read to the millimetre, and no reading stays none."""
-    from batchpose.io.folders import open_frames
+    from batchpose.io.sources import open_frames
     from tests.test_mcap_io import DT, ROS1, T0, H, W, ros1_camera_info, ros1_header, ros1_image, ros1_log
     from tests.test_mcap_io import ros1_record as rec
 
@@ -348,7 +348,7 @@ def test_mcap_depth_in_another_camera_frame_is_refused(tmp_path):
     """A RealSense log's depth/image_rect_raw is the depth camera's own image, not registered to the colour
     one; used as depth_topic it would put every depth reading at the wrong pixel."""
     from batchpose.errors import DataError
-    from batchpose.io.folders import open_frames
+    from batchpose.io.sources import open_frames
     from tests.test_mcap_io import T0, H, Log, W, _calib, _cimg, _enc, _img
 
     log_ = Log(tmp_path / "d435.mcap")
@@ -365,8 +365,8 @@ def test_mcap_depth_in_another_camera_frame_is_refused(tmp_path):
 def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
     """A folder data set with depth converts to /camera/image + /camera/depth (16UC1, mm); reading the log
     back picks the image topic, not the depth, and the depth round-trips to the millimetre."""
-    from batchpose.io.folders import open_frames
     from batchpose.io.mcap_io import write_frames_mcap
+    from batchpose.io.sources import open_frames
 
     make_ycbv(tmp_path / "ycbv")
     tenths = np.random.default_rng(3).integers(3000, 30000, (24, 32)).astype(np.uint16)  # YCB-Video: 0.1 mm

@@ -289,7 +289,7 @@ def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_pa
     """The bundled real frames carry their depth images: rgbd.yaml takes the cracker box's 1-3 % distance
     error away (issue 7, "the depth axis"), and the output log holds the depth for Foxglove."""
     from batchpose.core.frames import decode_depth
-    from batchpose.io.folders import open_frames
+    from batchpose.io.sources import open_frames
 
     out = tmp_path / "rgbd"
     run.main(ROOT / "pipelines" / "rgbd.yaml", DEMO, out, cache_dir=cache_dir, jobs=1)
@@ -307,8 +307,8 @@ def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_pa
 
 
 def test_a_missing_depth_topic_is_one_line_exit_2(tmp_path):
-    from batchpose.io.folders import open_frames
     from batchpose.io.mcap_io import write_frames_mcap
+    from batchpose.io.sources import open_frames
 
     write_frames_mcap(open_frames({"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")}, ROOT), tmp_path / "d.mcap")
     manifest = tmp_path / "m.yaml"

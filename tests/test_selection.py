@@ -1,5 +1,5 @@
 """Which frames a run uses: the manifest's ``frames:`` keys every / frame_ids / from_s / to_s
-(batchpose.io.folders.Selection) on small folder data sets and logs, and through ``batchpose run``."""
+(batchpose.io.sources.Selection) on small folder data sets and logs, and through ``batchpose run``."""
 
 from __future__ import annotations
 
@@ -12,9 +12,10 @@ import pandas as pd
 import pytest
 import yaml
 
+from batchpose.core.frames import FrameSource
 from batchpose.errors import ConfigError, DataError
-from batchpose.io.folders import FrameSource, SelectedFrames, Selection, open_frames
 from batchpose.io.mcap_io import McapFrameSource
+from batchpose.io.sources import SelectedFrames, Selection, open_frames
 from tests.test_datasets import make_ycbv
 from tests.test_mcap_io import DT, T0, Log, _calib, _cimg, _enc, _img
 

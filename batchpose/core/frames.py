@@ -7,6 +7,8 @@ to pass between processes and PNG/JPEG bytes can be copied into MCAP without re-
 from __future__ import annotations
 
 import struct
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import cv2
@@ -339,3 +341,62 @@ def decode_depth(frame: Frame) -> np.ndarray | None:
     depth = img.astype(np.float32) * np.float32(frame.depth_scale_m)
     depth[~np.isfinite(depth) | (depth < 0)] = 0.0
     return depth
+
+
+class FrameSource(ABC):
+    """A lazily read sequence of frames. Iterate it to get :class:`Frame` objects in a fixed order."""
+
+    @abstractmethod
+    def __iter__(self) -> Iterator[Frame]:
+        """Yield the frames one by one, reading each from disk only when it is reached."""
+
+    @abstractmethod
+    def count(self) -> int:
+        """Number of frames, without decoding any image."""
+
+    def obj_id(self, name: str) -> int:
+        """Data set object id of ``name`` (YCB-Video: 1-based line of classes.txt; BOP: obj_id); 0 if unknown."""
+        return 0
+
+    @abstractmethod
+    def describe(self) -> str:
+        """One line saying what this source reads, e.g. "ycbv /data/ycbv_dev (21 frames)"."""
+
+    def __len__(self) -> int:
+        return self.count()
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """Width and height from a PNG or JPEG header, without decoding pixels.
+
+    Args:
+        data: encoded image bytes.
+
+    Returns:
+        (width, height) in pixels, or None when the bytes are not a PNG/JPEG header we can read.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    if data[:2] != b"\xff\xd8":
+        return None
+    i, n = 2, len(data)
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01, *range(0xD0, 0xDA)):  # standalone markers carry no length
+            i += 2
+            continue
+        (seg_len,) = struct.unpack(">H", data[i + 2 : i + 4])
+        # SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC) hold the frame size.
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if i + 9 > n:
+                return None
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            return int(w), int(h)
+        i += 2 + seg_len
+    return None

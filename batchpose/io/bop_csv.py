@@ -13,7 +13,6 @@ Numbers are written as Python's shortest round-trip ``repr``, so ``write -> read
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import numpy as np
 import pandas as pd
 
 from batchpose.errors import DataError
+from batchpose.io.files import write_bytes_atomic
 from batchpose.report import metrics
 
 log = logging.getLogger("batchpose")
@@ -132,9 +132,7 @@ def write_bop_csv(poses: pd.DataFrame, path: Path | str, time_per: str = "image"
             )
         )
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(("\n".join(lines) + "\n").encode("ascii"))
-    os.replace(tmp, path)
+    write_bytes_atomic(path, ("\n".join(lines) + "\n").encode("ascii"))
     log.info("wrote %d estimates to %s", len(table), path)
     return path
 

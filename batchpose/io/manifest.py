@@ -9,7 +9,7 @@ Example::
     targets: annotations   # or: all
 
 Relative paths are resolved against the manifest file's folder. ``frames:`` may also choose which frames a
-run uses, with ``every``, ``frame_ids`` and (logs) ``from_s`` / ``to_s``: :class:`batchpose.io.folders.Selection`.
+run uses, with ``every``, ``frame_ids`` and (logs) ``from_s`` / ``to_s``: :class:`batchpose.io.sources.Selection`.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ class Manifest:
 
     Attributes:
         name: data set name. path: the manifest file.
-        frames: the ``frames:`` mapping with paths made absolute (for :func:`batchpose.io.folders.open_frames`).
+        frames: the ``frames:`` mapping with paths made absolute (for :func:`batchpose.io.sources.open_frames`).
         objects: the objects to estimate, with mesh and (optional) evaluation points files.
         targets: "annotations" (objects the ground truth lists in each frame) or "all".
     """

@@ -89,10 +89,19 @@ from mcap_ros1.decoder import DecoderFactory as Ros1DecoderFactory
 from mcap_ros2.decoder import DecoderFactory as Ros2DecoderFactory
 from scipy.spatial.transform import Rotation
 
-from batchpose.core.frames import RAW_ENCODINGS, Camera, Frame, ObjectPose, decode_depth, distortion_problem
+from batchpose.core.frames import (
+    RAW_ENCODINGS,
+    Camera,
+    Frame,
+    FrameSource,
+    ObjectPose,
+    decode_depth,
+    distortion_problem,
+    image_size,
+)
 from batchpose.core.poses import row_cam_from_model
 from batchpose.errors import BatchposeError, CameraError, ConfigError, DataError, ImageError
-from batchpose.io.folders import FrameSource, image_size, one_line
+from batchpose.io.files import one_line
 
 try:  # zstd is how chunks are usually compressed; its errors mean a corrupt chunk
     from zstandard import ZstdError

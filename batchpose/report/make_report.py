@@ -20,7 +20,6 @@ import html
 import io
 import json
 import logging
-import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ import yaml
 from batchpose.config import MeshConfig, load_estimator_config
 from batchpose.core.poses import STAGES, STATUSES, row_cam_from_model
 from batchpose.errors import BatchposeError, DataError, MeshError
+from batchpose.io.files import write_text_atomic
 from batchpose.report import metrics
 
 log = logging.getLogger("batchpose")
@@ -794,7 +794,7 @@ def _fetch_frames(run: RunData, frame_ids: set[str]) -> tuple[dict[str, Any], st
     if spec is None:
         return {}, "manifest.yaml has no 'frames:' entry"
     try:
-        from batchpose.io.folders import open_frames
+        from batchpose.io.sources import open_frames
 
         found: dict[str, Any] = {}
         for frame in open_frames(spec, run.run_dir):
@@ -1081,9 +1081,7 @@ def _gallery_section(items: list[dict], note: str, with_gt: bool) -> list[str]:
 
 
 def _write_atomic(path: Path, data: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(data, encoding="utf-8")
-    os.replace(tmp, path)
+    write_text_atomic(path, data)
 
 
 def _write_csv(df: pd.DataFrame, path: Path) -> None:

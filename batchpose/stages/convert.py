@@ -14,10 +14,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from batchpose.core.frames import Frame
+from batchpose.core.frames import Frame, FrameSource, image_size
 from batchpose.errors import ConfigError, DataError, ImageError
-from batchpose.io.folders import FrameSource, image_size, open_frames
 from batchpose.io.mcap_io import write_frames_mcap
+from batchpose.io.sources import open_frames
 
 log = logging.getLogger("batchpose")
 

@@ -22,9 +22,9 @@ from tqdm import tqdm
 from batchpose.config import EstimatorConfig, config_hash, load_estimator_config
 from batchpose.core.frames import Frame
 from batchpose.io import library
+from batchpose.io.files import write_parquet_atomic
 from batchpose.io.mesh import load_mesh
 from batchpose.method.estimator import PoseEstimator
-from batchpose.stages.ingest import write_parquet_atomic
 from batchpose.stages.workers import loky_options
 
 log = logging.getLogger("batchpose")

@@ -13,15 +13,9 @@ import pandas as pd
 from tqdm import tqdm
 
 from batchpose.errors import DataError
+from batchpose.io.files import write_parquet_atomic, write_text_atomic
 
 log = logging.getLogger("batchpose")
-
-
-def write_parquet_atomic(df: pd.DataFrame, path: Path) -> Path:
-    tmp = path.with_name(path.name + ".tmp")
-    df.to_parquet(tmp, index=False)
-    os.replace(tmp, path)
-    return path
 
 
 def _utf8(text: str) -> bool:
@@ -53,7 +47,7 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     finished pairs would be stale.
 
     Args:
-        source: a frame source (``batchpose.io.folders.open_frames``).
+        source: a frame source (``batchpose.io.sources.open_frames``).
         objects: object names of interest (ground truth of other objects is not kept).
         limit: index only the first ``limit`` frames.
 
@@ -74,9 +68,7 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     (run_dir / "poses.parquet").unlink(missing_ok=True)  # merged for another set of frames
     write_parquet_atomic(gt, gt_out)
     write_parquet_atomic(frames, out)
-    tmp = stamp.with_name(stamp.name + ".tmp")
-    tmp.write_text(json.dumps(covers))
-    os.replace(tmp, stamp)
+    write_text_atomic(stamp, json.dumps(covers), encoding=None)
     log.info("ingested %d frames, %d ground-truth poses of %s", len(frames), len(gt), ", ".join(objects))
     return out
 
