@@ -1,0 +1,60 @@
+"""Pipeline configuration: frozen dataclasses whose defaults are SPEC.md's values.
+
+A pipeline YAML (``pipelines/*.yaml``) sets any subset of these fields; unknown keys are an error.
+``--set section.field=value`` overrides one field (the value is parsed as YAML).
+
+- :mod:`.rules`: :func:`knob`, a field's choices and bounds next to its default, and the one validator.
+- :mod:`.sections`: one dataclass per step of the method (mesh, render, features, ..., plane).
+- :mod:`.estimator`: :class:`EstimatorConfig` (the sections plus the fields that span them) and
+  :func:`validate`, with the few rules that tie two fields together.
+- :mod:`.load`: YAML, ``--set`` overrides, dict to config and back, the config hash of cache keys.
+"""
+
+from batchpose.config.estimator import EstimatorConfig, validate
+from batchpose.config.load import (
+    apply_overrides,
+    config_hash,
+    from_dict,
+    load_estimator_config,
+    load_yaml,
+    to_dict,
+)
+from batchpose.config.rules import knob
+from batchpose.config.sections import (
+    DepthConfig,
+    FeatureConfig,
+    FineConfig,
+    GncConfig,
+    MatchConfig,
+    MeshConfig,
+    PlaneConfig,
+    RefineConfig,
+    RenderConfig,
+    TrackConfig,
+    WeightsConfig,
+)
+from batchpose.errors import ConfigError
+
+__all__ = [
+    "ConfigError",
+    "DepthConfig",
+    "EstimatorConfig",
+    "FeatureConfig",
+    "FineConfig",
+    "GncConfig",
+    "MatchConfig",
+    "MeshConfig",
+    "PlaneConfig",
+    "RefineConfig",
+    "RenderConfig",
+    "TrackConfig",
+    "WeightsConfig",
+    "apply_overrides",
+    "config_hash",
+    "from_dict",
+    "knob",
+    "load_estimator_config",
+    "load_yaml",
+    "to_dict",
+    "validate",
+]
