@@ -312,10 +312,22 @@ def locate(
     """
     if lib_index is None or len(desc_q) == 0 or len(lib.shapes) != len(lib.desc):
         return []
+    votes = _votes(xy_q, shapes_q, desc_q, lib_index, lib, conf, width, height, ratio, min_votes, nearest)
+    if votes is None:
+        return []
+    return _peaks(votes, xy_q, lib, width, height, angle_bin_deg, min_votes, peaks)
+
+
+def _votes(
+    xy_q, shapes_q, desc_q, lib_index, lib: TemplateLibrary, conf: MatchConfig, width, height, ratio, min_votes, nearest
+):
+    """:func:`locate`'s votes: (centre (M, 2) px, size (M,) px, angle (M,) degrees, frame keypoint (M,),
+    template keypoint (M,)) of each match that passes the ratio test and lands in the image; None when
+    fewer than ``min_votes``."""
     idx, dist, rival = nearest_with_rival(desc_q, lib_index, lib, conf) if nearest is None else nearest
     q = np.nonzero(dist[:, 0] < ratio * rival)[0]
     if len(q) < min_votes:
-        return []
+        return None
     t = idx[q, 0]
     # The object's centre and diameter in each template view.
     centre = lib.pts3d.mean(axis=0).astype(np.float64)
@@ -335,7 +347,13 @@ def locate(
     inside = (c[:, 0] >= 0) & (c[:, 0] < width) & (c[:, 1] >= 0) & (c[:, 1] < height) & (size > 1.0)
     c, size, a_deg, q, t = c[inside], size[inside], a_deg[inside], q[inside], t[inside]
     if len(c) < min_votes:
-        return []
+        return None
+    return c, size, a_deg, q, t
+
+
+def _peaks(votes, xy_q, lib: TemplateLibrary, width, height, angle_bin_deg, min_votes, peaks) -> list[Location]:
+    """:func:`locate`'s locations: the fullest cells of the votes, each taking the votes that agree with it."""
+    c, size, a_deg, q, t = votes
     cell = max(width, height) / 20.0
     cols = [c / cell, np.log2(size)[:, None]]
     n_rot = int(round(360.0 / angle_bin_deg)) if angle_bin_deg > 0 else 0

@@ -373,8 +373,14 @@ def search(
             for c in (aligned(start @ F) for F in [np.eye(4), *flips])
             if c is not None and c.match > 0.0  # turned or misplaced: the texture does not line up at all
         ]
-    found.sort(key=lambda c: -c.score)
-    centre = surface.points.mean(axis=0)
+    best = _best(found, surface.points.mean(axis=0), diameter_m, conf, aligned, turns)
+    return None if best is None else best.found()
+
+
+def _best(found: list[_Candidate], centre, diameter_m: float, conf: DepthConfig, aligned, turns) -> _Candidate | None:
+    """The best-scoring of the distinct candidates (``search_polish`` of them polished first) that passes
+    the checks; ``centre``: the model's centre, which decides when two candidates are the same pose."""
+    found = sorted(found, key=lambda c: -c.score)
     distinct: list[_Candidate] = []  # alignments from several places often end at the same pose
     for cand in found:
         if all(not _same_pose(cand.fit_pose, d.fit_pose, centre, diameter_m) for d in distinct):
@@ -385,7 +391,7 @@ def search(
             cand = _polish(cand, aligned, turns)
         if cand.passes(conf) and (best is None or cand.score > best.score):
             best = cand
-    return None if best is None else best.found()
+    return best
 
 
 def _same_pose(A: np.ndarray, B: np.ndarray, c: np.ndarray, diameter_m: float) -> bool:

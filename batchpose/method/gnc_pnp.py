@@ -151,6 +151,30 @@ def solve_pose(
     if n < max(conf.min_inliers, 4):
         return PnpResult("too_few_matches", f"{n} correspondences, need {max(conf.min_inliers, 4)}", timings=timings)
 
+    start = _ransac(x, X, K, dist, conf, seed, timings)
+    if isinstance(start, PnpResult):
+        return start
+    rvec, tvec, inliers, r = start
+    iterations = 0
+    if conf.enabled:
+        t0 = time.perf_counter()
+        rvec, tvec, inliers, iterations = gnc(x, X, K, dist, w_geom, rvec, tvec, inliers, r, conf)
+        timings["gnc"] = time.perf_counter() - t0
+
+    if conf.final_lm and inliers.sum() >= 4:
+        t0 = time.perf_counter()
+        rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, dist, rvec, tvec)
+        timings["lm"] = time.perf_counter() - t0
+    if not _valid_pose(tvec):
+        return PnpResult("pnp_failed", "pose behind the camera after refinement", timings=timings)
+    r = reprojection_errors(X, x, rvec, tvec, K, dist)
+    return PnpResult("ok", "", to_matrix(rvec, tvec), inliers, r, timings, iterations)
+
+
+def _ransac(x, X, K, dist, conf: GncConfig, seed: int, timings: dict[str, float]):
+    """RANSAC-PnP (EPnP, seeded) polished by LM on its inliers: (rvec, tvec, inliers (N,) bool, residuals
+    (N,) px), or a failed :class:`PnpResult`."""
+    n = len(x)
     t0 = time.perf_counter()
     cv2.setRNGSeed(seed)
     try:
@@ -177,51 +201,49 @@ def solve_pose(
     # Polish the RANSAC pose on its inliers (EPnP in RANSAC is coarse).
     rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, dist, rvec, tvec)
     r = reprojection_errors(X, x, rvec, tvec, K, dist)
-    inliers = r < conf.ransac_reproj_px
+    return rvec, tvec, r < conf.ransac_reproj_px, r
+
+
+def gnc(x, X, K, dist, w_geom, rvec, tvec, inliers, r, conf: GncConfig):
+    """Graduated non-convexity from a RANSAC start (SPEC §4): Geman–McClure weights at a scale ``mu`` that
+    shrinks by ``gamma`` each round; the pose is solved again on the pairs both filters keep (GNC weight
+    above ``tau_gnc`` and geometry weight ``w_geom`` above ``tau_geom``) until the selection stops changing,
+    fewer than ``min_inliers`` remain or ``mu`` reaches ``mu_final_px``.
+
+    Returns:
+        (rvec, tvec, inliers (N,) bool, iterations): the last pose solved and the pairs it was solved on.
+    """
     iterations = 0
-
-    if conf.enabled:
-        t0 = time.perf_counter()
+    rr = r**2 if conf.residual == "squared" else r
+    base = rr if conf.mu0_from == "all" else rr[inliers]
+    # No inliers left after the polish: NaN selects nothing and ends GNC at once (without numpy's warning).
+    mu = conf.kappa * float(np.median(base)) + conf.epsilon if base.size else float("nan")
+    prev: np.ndarray | None = None
+    gnc_inliers = inliers
+    while iterations < conf.max_iterations:
+        w_gnc = mu**2 / (rr**2 + mu**2)
+        sel = (w_gnc > conf.tau_gnc) & (w_geom > conf.tau_geom)
+        if sel.sum() < conf.min_inliers:
+            break
+        if prev is not None and np.array_equal(sel, prev):
+            break
+        ok, rv, tv = cv2.solvePnP(
+            X[sel],
+            x[sel],
+            K,
+            dist,
+            rvec.copy(),
+            tvec.copy(),
+            useExtrinsicGuess=True,
+            flags=cv2.SOLVEPNP_ITERATIVE,
+        )
+        iterations += 1
+        if not ok or not _valid_pose(tv):
+            break
+        rvec, tvec, gnc_inliers, prev = rv, tv, sel, sel
+        r = reprojection_errors(X, x, rvec, tvec, K, dist)
         rr = r**2 if conf.residual == "squared" else r
-        base = rr if conf.mu0_from == "all" else rr[inliers]
-        # No inliers left after the polish: NaN selects nothing and ends GNC at once (without numpy's warning).
-        mu = conf.kappa * float(np.median(base)) + conf.epsilon if base.size else float("nan")
-        prev: np.ndarray | None = None
-        gnc_inliers = inliers
-        while iterations < conf.max_iterations:
-            w_gnc = mu**2 / (rr**2 + mu**2)
-            sel = (w_gnc > conf.tau_gnc) & (w_geom > conf.tau_geom)
-            if sel.sum() < conf.min_inliers:
-                break
-            if prev is not None and np.array_equal(sel, prev):
-                break
-            ok, rv, tv = cv2.solvePnP(
-                X[sel],
-                x[sel],
-                K,
-                dist,
-                rvec.copy(),
-                tvec.copy(),
-                useExtrinsicGuess=True,
-                flags=cv2.SOLVEPNP_ITERATIVE,
-            )
-            iterations += 1
-            if not ok or not _valid_pose(tv):
-                break
-            rvec, tvec, gnc_inliers, prev = rv, tv, sel, sel
-            r = reprojection_errors(X, x, rvec, tvec, K, dist)
-            rr = r**2 if conf.residual == "squared" else r
-            if mu <= conf.mu_final_px:
-                break
-            mu = max(conf.gamma * mu, conf.mu_final_px)
-        inliers = gnc_inliers
-        timings["gnc"] = time.perf_counter() - t0
-
-    if conf.final_lm and inliers.sum() >= 4:
-        t0 = time.perf_counter()
-        rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, dist, rvec, tvec)
-        timings["lm"] = time.perf_counter() - t0
-    if not _valid_pose(tvec):
-        return PnpResult("pnp_failed", "pose behind the camera after refinement", timings=timings)
-    r = reprojection_errors(X, x, rvec, tvec, K, dist)
-    return PnpResult("ok", "", to_matrix(rvec, tvec), inliers, r, timings, iterations)
+        if mu <= conf.mu_final_px:
+            break
+        mu = max(conf.gamma * mu, conf.mu_final_px)
+    return rvec, tvec, gnc_inliers, iterations

@@ -333,23 +333,29 @@ def search_plane(
     # from its surroundings: the best of those that pass the checks goes on.
     refined = [_refine(places[k], plane, target, judge, COARSE_STEPS) for k in starts]
     if conf.reface:
-        # A silhouette barely tells a bottle lying on its left side from one on its right: the texture does.
-        # At each refined start's place, the REFACED best of its other resting faces (long axis kept) are
-        # refined too.
-        for _, p in list(refined):
-            if p is None:
-                continue
-            ranked = []  # turned more than 30 degrees from the start and from one another, best first
-            for T in sorted(_refaced(p.cam_from_model, plane, target), key=lambda T: -judge(T)[0]):
-                if all(_turn_deg(T, U) > 30.0 for U in [p.cam_from_model, *ranked]):
-                    ranked.append(T)
-            refined += [_refine(T, plane, target, judge, COARSE_STEPS) for T in ranked[:REFACED]]
+        refined += _refaced_starts(refined, plane, target, judge)
     refined = sorted((r for r in refined if passes(*r, floor, final=False)), key=lambda r: -r[0])
     for start in refined:
         best = _refine(start[1].cam_from_model, plane, target, judge, FINE_STEPS)
         if passes(*best, floor):
             return best[1]
     return None
+
+
+def _refaced_starts(refined: list, plane: Plane, target: Target, judge) -> list:
+    """``plane.reface``: a silhouette barely tells a bottle lying on its left side from one on its right;
+    the texture does. At each refined start's place, the :data:`REFACED` best of its other resting faces
+    (long axis kept; turned more than 30 degrees from the start and from one another) are refined too."""
+    out = []
+    for _, p in refined:
+        if p is None:
+            continue
+        ranked: list[np.ndarray] = []  # best first
+        for T in sorted(_refaced(p.cam_from_model, plane, target), key=lambda T: -judge(T)[0]):
+            if all(_turn_deg(T, U) > 30.0 for U in [p.cam_from_model, *ranked]):
+                ranked.append(T)
+        out += [_refine(T, plane, target, judge, COARSE_STEPS) for T in ranked[:REFACED]]
+    return out
 
 
 def _edge_credit(rgb: np.ndarray, found_mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

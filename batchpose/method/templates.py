@@ -100,6 +100,22 @@ def lift_keypoints(
     return keep, model.astype(np.float32)
 
 
+def _view_keypoints(rgb, depth, K, T, pad: int, feature_conf: FeatureConfig, sift):
+    """SIFT on one rendered view's object box (grown by ``pad``), lifted to 3D through the rendered depth:
+    (xy (N, 2), descriptors (N, 128), shapes (N, 2), model points (N, 3)) of the keypoints on the object;
+    None when the view shows none of it."""
+    height, width = depth.shape
+    ys, xs = np.nonzero(depth > 0)
+    if not len(xs):
+        return None
+    x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, width)
+    y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, height)
+    xy, desc, shapes = detect_shapes(to_gray(rgb[y0:y1, x0:x1]), feature_conf, sift=sift)
+    xy = xy + np.array([x0, y0], np.float32)
+    keep, pts = lift_keypoints(xy, depth, K, np.linalg.inv(T))
+    return xy[keep], desc[keep], shapes[keep], pts
+
+
 def render_templates(
     model: ObjectModel,
     K: np.ndarray,
@@ -144,19 +160,15 @@ def render_templates(
             render_conf.zfar_m,
         )
         n_kept = 0
-        ys, xs = np.nonzero(depth > 0)
-        if len(xs):
-            x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, width)
-            y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, height)
-            xy, desc, shapes = detect_shapes(to_gray(rgb[y0:y1, x0:x1]), feature_conf, sift=sift)
-            xy = xy + np.array([x0, y0], np.float32)
-            keep, pts = lift_keypoints(xy, depth, K, np.linalg.inv(T))
-            n_kept = int(keep.sum())
+        found = _view_keypoints(rgb, depth, K, T, pad, feature_conf, sift)
+        if found is not None:
+            xy, desc, shapes, pts = found
+            n_kept = len(xy)
             all_ids.append(np.full(n_kept, view["view_id"], np.int32))
-            all_xy.append(xy[keep])
-            all_desc.append(desc[keep])
+            all_xy.append(xy)
+            all_desc.append(desc)
             all_pts.append(pts)
-            all_shapes.append(shapes[keep])
+            all_shapes.append(shapes)
         rows.append(
             {
                 "view_id": view["view_id"],
