@@ -10,8 +10,8 @@ correlates well anywhere). The best few are refined by half a size and half an a
 poses and printed with their ADD-S against the ground truth and a colour score (Bhattacharyya similarity of
 the rendered mesh's hue-saturation histogram to the frame's inside the silhouette, minus to a 7-px ring
 around it), next to the ground truth's own colour score. With ``--refine N`` the best N hits are refined
-by a pattern search on the colour score and the one scoring highest is kept. reports/ACCURACY.md
-("Session 7") has the figures and what they say.
+by a pattern search on the colour score and the one scoring highest is kept. reports/ACCURACY.md at 8fba8e3,
+"Session 7") has the figures and what they say.
 
 Usage:
     .venv/bin/python benchmarks/shape_probe.py [--object 006_mustard_bottle] [--frames 0001/000001 ...]
@@ -286,7 +286,9 @@ def main() -> int:
     first = frames[args.frames[0]]
     model = load_mesh(DATA / "ycb_models" / args.object / "textured.obj", conf.mesh, name=args.object)
     lib = library.load(
-        build_templates.main(model, conf, first.camera.K, first.camera.width, first.camera.height, Path(args.cache))
+        build_templates.build_library(
+            model, conf, first.camera.K, first.camera.width, first.camera.height, Path(args.cache)
+        )
     )
     renderer = get_renderer()
     pts = lib.pts3d.astype(np.float64)

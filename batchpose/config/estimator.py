@@ -79,7 +79,7 @@ class EstimatorConfig:
     """See ``planar_spread``: the other pose replaces the pose when, by colour and by edges each, its mismatch
     (1 - match) is at most the pose's own divided by this. Either cue alone errs (colour where an occluder
     covers the object, edges on clutter); on held-out seeds 3 and 4 and tabletop seed 0 the two agreed on
-    all 9 cases reached, which neither did alone (reports/ACCURACY.md, "Session 15")."""
+    all 9 cases reached, which neither did alone (reports/ACCURACY.md at 8fba8e3, "Session 15")."""
     min_object_px: float = 12.0
     """A pose at which the object's diameter would span fewer pixels than this is implausible: the frame
     could not show it (status pnp_failed, and never used to place the fine pass's box)."""
@@ -98,7 +98,7 @@ class EstimatorConfig:
     """Frames whose longer side exceeds this are estimated at that size (resized, the camera scaled with
     them; templates rendered for the scaled camera); poses, inlier points and residuals are reported for
     the full frame. 0: full resolution. An HD camera's frames cost several times a 640x480 frame's time and
-    memory (reports/BENCHMARKS.md "Session 32"); the pixel thresholds here were set on 640x480 frames.
+    memory (reports/BENCHMARKS.md at 8fba8e3, "Session 32"); the pixel thresholds here were set on 640x480 frames.
     Fewer pixels also mean fewer keypoints on a small object: measure on your own frames."""
     mesh: MeshConfig = field(default_factory=MeshConfig)
     render: RenderConfig = field(default_factory=RenderConfig)

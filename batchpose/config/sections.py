@@ -70,7 +70,7 @@ class FeatureConfig:
     in frames where an object is missing or weak; confidently found objects are never affected. Held-out
     sets (benchmarks/heldout.py) seeds 0 / 1 / 2 / 3: 82.4 / 80.3 / 83.7 / 78.8 without the retry, 88.4 /
     84.3 / 84.8 / 82.7 mean ADD-S AUC with it (85.4 / 85.3 / 85.7 / 80.8 when the fine pass kept the default
-    contrast); ycbv_dev unchanged (reports/ACCURACY.md, "Session 13" and "Session 14")."""
+    contrast); ycbv_dev unchanged (reports/ACCURACY.md at 8fba8e3, "Session 13" and "Session 14")."""
     retry_sigma: float = knob(1.2, gt=0, off="off")
     """A second retry, for the objects the first one (``retry_contrast_threshold``) did not find either, or
     found only weakly: keypoints detected again at ``retry_contrast_threshold`` with SIFT's base blur at
@@ -78,7 +78,7 @@ class FeatureConfig:
     Kept under the first retry's rule: ok and more confident. Held-out seeds 3-14 (2,304 pairs, paired):
     mean ADD-S / ADD AUC 85.3 / 84.0 -> 86.3 / 85.0, no seed lower, 21 more right poses and 13 more wrong
     ones reported ok; fresh seeds 15-16: 83.0 / 81.7 -> 83.8 / 82.7; ycbv_dev and the scale logs unchanged;
-    ~15 % more compute per pair on the held-out frames, none on a tracked log (reports/ACCURACY.md,
+    ~15 % more compute per pair on the held-out frames, none on a tracked log (reports/ACCURACY.md at 8fba8e3,
     "Session 25")."""
     edge_threshold: float = knob(10.0, gt=0)
     """SIFT's edge threshold (OpenCV's default): the larger, the fewer edge-like keypoints are dropped."""
@@ -86,7 +86,7 @@ class FeatureConfig:
     """σ of SIFT's base blur of the image (OpenCV's default); see ``retry_sigma``."""
     root_sift: bool = True
     """Use RootSIFT (Arandjelović & Zisserman 2012: L1-normalised, square-rooted) descriptors, compared by
-    Euclidean distance = Hellinger kernel; the ``paper`` pipeline keeps SIFT's (reports/ACCURACY.md,
+    Euclidean distance = Hellinger kernel; the ``paper`` pipeline keeps SIFT's (reports/ACCURACY.md at 8fba8e3,
     "Session 11")."""
     crop_padding_px: int = 16
     """Templates: run SIFT only on the object's bounding box plus this margin (saves time, same features)."""
@@ -205,7 +205,7 @@ class RefineConfig:
     along the line of sight where the mesh and the calibration match the images exactly: unseen held-out
     frames (rendered meshes, seeds 3-14) 85.3 / 84.0 -> 86.1 / 85.3 mean ADD-S / ADD AUC, median ADD 1.5 ->
     0.9 mm. On ycbv_dev's real frames it moves poses farther still from the ground truth and the depth
-    sensor (90.5 / 79.1 -> 88.9 / 76.5, the tracked frames following it too; reports/ACCURACY.md
+    sensor (90.5 / 79.1 -> 88.9 / 76.5, the tracked frames following it too; reports/ACCURACY.md at 8fba8e3,
     "Session 23"), so it is off by default. Costs a render and about 200 patch searches a round, for full
     estimates only."""
     polish_rounds: int = knob(3, ge=1)
@@ -352,7 +352,7 @@ class TrackConfig:
     """Make those every-``lost_full_every``-th estimates of a mostly hidden object quick ones (see
     ``lost_full_every``), so that a second object in the frame costs at most 0.3x the decode + SIFT floor
     even where one hides the other. False gives them the full estimate: on the two-object benchmark log
-    (reports/BENCHMARKS.md, session 18) the further object's cost rises from +0.2x to +0.47x the floor, and
+    (reports/BENCHMARKS.md at 8fba8e3, session 18) the further object's cost rises from +0.2x to +0.47x the floor, and
     the fine pass finds a mostly hidden object in a few more frames (ADD < 0.1 d 95.4 -> 95.8 % of the log's
     pairs)."""
     hidden_retry: bool = False
@@ -489,18 +489,18 @@ class PlaneConfig:
     0.67-0.97 of their outline within 1.5 px of an edge; with ``edge_weight`` 0.5 the
     placements of absent objects that passed every other check scored 0.40-0.62 (tabletop seeds 0-2; this
     value was chosen from them). Tabletop seeds 0-3 against 0 / 0: right 20 -> 23, wrong 2 -> 1, absent
-    objects placed 2 -> 1 (reports/ACCURACY.md, "Session 27")."""
+    objects placed 2 -> 1 (reports/ACCURACY.md at 8fba8e3, "Session 27")."""
     edge_confirms: float = knob(0.75, ge=0, le=1)
     """A finely refined placement that fails one of the two colour checks (``min_colour``, ``min_contrast``)
     is kept if its edge score is at least this: a pale bottle on a white table has the table's colours, a thin
     marker a pixel aside has its own pixels in the contrast's ring. 0: off. Chosen between the edges of the
     truth (0.67-0.97) and of absent objects' placements (90 % under 0.41); with the border fix of session 28,
-    tabletop seeds 0-7 replayed: right 39 -> 52, wrong 4 -> 1, absent objects placed 2 -> 2 (reports/ACCURACY.md,
-    "Session 28")."""
+    tabletop seeds 0-7 replayed: right 39 -> 52, wrong 4 -> 1, absent objects placed 2 -> 2
+    (reports/ACCURACY.md at 8fba8e3, "Session 28")."""
     reface: bool = True
     """Also refine, at each coarsely refined start's place, the two best of the object's other resting faces
     with its long axis kept (a bottle lying on its other side, a box on its back): the silhouette barely
     differs, the texture does. Tabletop seeds 1-4, the plane search replayed with and without it: +0.71,
     0.00, +0.84 and -0.10 pairs of credit (a power drill and a bleach cleanser found); ycbv_dev's mustard
-    bottle moves 0.3-2.6 mm. It doubles the search's time (tabletop: 2.9 -> 5.1 s a search; reports/ACCURACY.md,
-    "Session 30"). False: the coarse search's faces only."""
+    bottle moves 0.3-2.6 mm. It doubles the search's time (tabletop: 2.9 -> 5.1 s a search;
+    reports/ACCURACY.md at 8fba8e3, "Session 30"). False: the coarse search's faces only."""

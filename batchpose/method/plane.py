@@ -36,7 +36,7 @@ object standing on it at a given pixel is at one distance only. For such an obje
    outline along found objects (their own outline is an edge). It peaks sharply at the right place, where
    colour and texture change little: on tabletop frames (the share of outline pixels within 1.5 px of an
    edge) 0.67-0.97 there, 0.3-0.8 one or two centimetres aside, 0.05 (90 % under 0.41) where the search
-   places an object the frame does not show (reports/ACCURACY.md, "Session 27");
+   places an object the frame does not show (reports/ACCURACY.md at 8fba8e3, "Session 27");
 5. **verify**: a placement is kept if at least ``min_visible`` of its silhouette is not hidden by a found
    object, those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
    silhouette by ``min_contrast`` (it stands out from where it stands), the texture correlation is at
@@ -49,7 +49,7 @@ object standing on it at a given pixel is at one distance only. For such an obje
    check may fail too) is refined in the fine steps and kept if it then passes every check (else the next).
 
 With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
-and searches only when that no longer passes. reports/ACCURACY.md ("Session 10", "Session 11") has the
+and searches only when that no longer passes. reports/ACCURACY.md at 8fba8e3 ("Session 10", "Session 11") has the
 figures.
 """
 
