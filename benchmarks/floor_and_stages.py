@@ -64,7 +64,7 @@ from batchpose.config import apply_overrides, load_estimator_config, load_yaml  
 from batchpose.core.frames import decode_image  # noqa: E402
 from batchpose.core.poses import STAGES  # noqa: E402
 from batchpose.io import bop_csv as bop  # noqa: E402,I001
-from batchpose.io import library, mcap_io
+from batchpose.io import gltf, library
 from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
 from batchpose.io.sources import open_frames  # noqa: E402
@@ -234,7 +234,7 @@ def run_pipeline(args, run_dir: Path, jobs: int, one_core: bool = False) -> dict
     timer.wrap(estimate_poses, "_estimator", "startup")  # in-process only (jobs 1): library load, indices
     timer.wrap(bop, "write_bop_csv", "write")
     timer.wrap(export_mcap, "main", "write")
-    timer.wrap(mcap_io, "mesh_to_glb", "glb")  # inside write: once per object, not per frame
+    timer.wrap(gltf, "mesh_to_glb", "glb")  # inside write: once per object, not per frame
     timer.wrap(PoseEstimator, "estimate_frame", "frame", keep=lambda a, out: (a[1].frame_id, len(a[2])))
     t0 = time.perf_counter()
     with timer, RssSampler(0.1) as rss:

@@ -21,7 +21,10 @@ import trimesh
 from PIL import Image
 
 from batchpose.core.frames import Camera, Frame, decode_image
-from batchpose.io.mcap_io import McapFrameSource, mesh_to_glb, write_frames_mcap, write_poses_mcap
+from batchpose.io.gltf import mesh_to_glb
+from batchpose.io.mcap_poses import write_poses_mcap
+from batchpose.io.mcap_read import McapFrameSource
+from batchpose.io.mcap_write import write_frames_mcap
 
 W, H = 640, 480
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])

@@ -115,7 +115,7 @@ def second_pose(i: int, period: int, center_m: np.ndarray, diameter_m: float) ->
 def generate(path: str, n: int, quality: int = 90, two_objects: bool = False) -> dict:
     """Write the log (run in a child process: the renderer's memory stays out of the measured processes)."""
     from batchpose.core.frames import Camera, Frame, ObjectPose  # noqa: PLC0415
-    from batchpose.io.mcap_io import write_frames_mcap  # noqa: PLC0415
+    from batchpose.io.mcap_write import write_frames_mcap  # noqa: PLC0415
     from batchpose.io.mesh import load_mesh  # noqa: PLC0415
     from batchpose.method.render import get_renderer  # noqa: PLC0415
 

@@ -14,7 +14,7 @@ import scipy.io
 import yaml
 
 from batchpose.core.frames import decode_image
-from batchpose.io.mcap_io import McapFrameSource
+from batchpose.io.mcap_read import McapFrameSource
 from batchpose.io.sources import open_frames
 from batchpose.stages import convert
 

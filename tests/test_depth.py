@@ -365,7 +365,7 @@ def test_mcap_depth_in_another_camera_frame_is_refused(tmp_path):
 def test_convert_writes_depth_and_the_image_topic_stays_the_image(tmp_path):
     """A folder data set with depth converts to /camera/image + /camera/depth (16UC1, mm); reading the log
     back picks the image topic, not the depth, and the depth round-trips to the millimetre."""
-    from batchpose.io.mcap_io import write_frames_mcap
+    from batchpose.io.mcap_write import write_frames_mcap
     from batchpose.io.sources import open_frames
 
     make_ycbv(tmp_path / "ycbv")

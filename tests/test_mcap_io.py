@@ -1,4 +1,5 @@
-"""MCAP reading (foxglove + ROS 2), writing, write-back and bad logs, on tiny logs built here."""
+"""MCAP reading (foxglove + ROS 2), writing, write-back and bad logs, on tiny logs built here
+(batchpose.io.mcap_read, mcap_write, mcap_poses and the modules they use)."""
 
 from __future__ import annotations
 
@@ -35,7 +36,10 @@ from scipy.spatial.transform import Rotation
 
 from batchpose.core.frames import Camera, Frame, ObjectPose, decode_image
 from batchpose.errors import CameraError, ConfigError, DataError, ImageError
-from batchpose.io.mcap_io import (
+from batchpose.io.gltf import mesh_to_glb
+from batchpose.io.mcap_poses import write_poses_mcap
+from batchpose.io.mcap_read import McapFrameSource
+from batchpose.io.mcap_topics import (
     ANNOTATIONS_TOPIC,
     DEPTH_TOPIC,
     GT_TOPIC,
@@ -43,11 +47,8 @@ from batchpose.io.mcap_io import (
     SCENE_TOPIC,
     STATUS_TOPIC,
     TF_TOPIC,
-    McapFrameSource,
-    mesh_to_glb,
-    write_frames_mcap,
-    write_poses_mcap,
 )
+from batchpose.io.mcap_write import write_frames_mcap
 
 W, H = 64, 48
 K1 = np.array([[80.0, 0.0, 31.5], [0.0, 82.0, 23.5], [0.0, 0.0, 1.0]])

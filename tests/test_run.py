@@ -307,7 +307,7 @@ def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_pa
 
 
 def test_a_missing_depth_topic_is_one_line_exit_2(tmp_path):
-    from batchpose.io.mcap_io import write_frames_mcap
+    from batchpose.io.mcap_write import write_frames_mcap
     from batchpose.io.sources import open_frames
 
     write_frames_mcap(open_frames({"format": "ycbv", "root": str(ROOT / "demo_data/ycbv")}, ROOT), tmp_path / "d.mcap")

@@ -14,7 +14,7 @@ import yaml
 
 from batchpose.core.frames import FrameSource
 from batchpose.errors import ConfigError, DataError
-from batchpose.io.mcap_io import McapFrameSource
+from batchpose.io.mcap_read import McapFrameSource
 from batchpose.io.sources import SelectedFrames, Selection, open_frames
 from tests.test_datasets import make_ycbv
 from tests.test_mcap_io import DT, T0, Log, _calib, _cimg, _enc, _img

@@ -358,7 +358,7 @@ def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, c
 
     from batchpose import run
     from batchpose.core.frames import ObjectPose
-    from batchpose.io.mcap_io import write_frames_mcap
+    from batchpose.io.mcap_write import write_frames_mcap
     from tests.conftest import ROOT
 
     frames = [

@@ -15,7 +15,7 @@ Layouts:
     ``rgb/<im_id:06d>.png|jpg``.
     ``images``: a folder of ``.png`` / ``.jpg`` files plus an intrinsics YAML with ``fx, fy, cx, cy,
     width, height`` and optional ``dist`` (OpenCV order) and ``distortion_model``.
-    ``mcap``: see :mod:`batchpose.io.mcap_io`.
+    ``mcap``: see :mod:`batchpose.io.mcap_read`.
 
 Folder data sets carry no capture times, so ``stamp_ns`` is synthetic: ``index * 33_333_333`` (30 Hz
 from 0), in listing order.

@@ -80,7 +80,7 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
     elif fmt == "images":
         source = ImagesFrameSource(resolve("root"), resolve("intrinsics") if spec.get("intrinsics") else None)
     else:
-        from batchpose.io.mcap_io import McapFrameSource  # only mcap_io imports mcap
+        from batchpose.io.mcap_read import McapFrameSource  # only io/mcap_* import mcap
 
         for key in ("image_topic", "calibration_topic", "depth_topic"):
             if spec.get(key) is not None and not isinstance(spec[key], str):

@@ -2,8 +2,8 @@
 
 The log holds ``/camera/image`` (foxglove.CompressedImage, the PNG/JPEG bytes copied, never
 re-encoded), ``/camera/calibration`` (foxglove.CameraCalibration) and, when the data set has ground
-truth, ``/ground_truth/poses`` (see :mod:`batchpose.io.mcap_io`). Reading the log back with
-:class:`~batchpose.io.mcap_io.McapFrameSource` gives the same pixels, K and ground truth.
+truth, ``/ground_truth/poses`` (see :mod:`batchpose.io.mcap_topics`). Reading the log back with
+:class:`~batchpose.io.mcap_read.McapFrameSource` gives the same pixels, K and ground truth.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from batchpose.core.frames import Frame, FrameSource, image_size
 from batchpose.errors import ConfigError, DataError, ImageError
-from batchpose.io.mcap_io import write_frames_mcap
+from batchpose.io.mcap_write import write_frames_mcap
 from batchpose.io.sources import open_frames
 
 log = logging.getLogger("batchpose")

@@ -21,16 +21,17 @@ def main(
     overwrite: bool = False,
 ) -> Path:
     """Write ``run_dir/poses.mcap``; skipped when it is newer than ``poses_path``. Returns its path."""
-    from batchpose.io import mcap_io
+    from batchpose.io.gltf import mesh_to_glb
+    from batchpose.io.mcap_poses import write_poses_mcap
 
     out = Path(run_dir) / "poses.mcap"
     if out.is_file() and not overwrite and out.stat().st_mtime >= Path(poses_path).stat().st_mtime:
         log.info("Skipping MCAP export: %s is up to date", out)
         return out
     poses = pd.read_parquet(poses_path)
-    glbs = {name: mcap_io.mesh_to_glb(m.mesh) for name, m in models.items()}
+    glbs = {name: mesh_to_glb(m.mesh) for name, m in models.items()}
     if frames_spec.get("format") == "mcap":
-        mcap_io.write_poses_mcap(
+        write_poses_mcap(
             out,
             poses,
             glbs,
@@ -42,5 +43,5 @@ def main(
     else:
         wanted = set(poses["frame_id"])
         frames = (f for f in source if f.frame_id in wanted)
-        mcap_io.write_poses_mcap(out, poses, glbs, frames=frames)
+        write_poses_mcap(out, poses, glbs, frames=frames)
     return out
