@@ -46,14 +46,14 @@ def _cmd_run(args: argparse.Namespace) -> None:
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
-    from batchpose.report import make_report
+    from batchpose.stages import report as report_stage
 
-    out = make_report.main(Path(args.run_dir), overwrite=True)
+    out = report_stage.main(Path(args.run_dir), overwrite=True)
     print(f"report: {out}")
 
 
 def _cmd_compare(args: argparse.Namespace) -> None:
-    from batchpose.report import make_report
+    from batchpose.stages import report as report_stage
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -62,20 +62,19 @@ def _cmd_compare(args: argparse.Namespace) -> None:
         raise BatchposeError(
             f"compare --out {out}: is not empty and holds no comparison (no compare.csv); give a new or empty directory"
         )
-    out = make_report.compare([Path(p) for p in args.run_dirs], out)
+    out = report_stage.compare([Path(p) for p in args.run_dirs], out)
     print(f"compare: {out}")
 
 
 def _cmd_score(args: argparse.Namespace) -> None:
-    from batchpose.io import bop_csv as bop
-    from batchpose.report import make_report
+    from batchpose.report import runs, scoring
 
-    run = make_report.load_run(Path(args.run_dir))
+    run = runs.load_run(Path(args.run_dir))
     if run.gt is None or run.gt.empty:
         raise BatchposeError(f"{args.run_dir}: the run has no ground truth (gt.parquet) to score against")
     points, diameters = run.model_points(sorted(run.objects))
     obj_names = {int(v["obj_id"]): k for k, v in run.objects.items()}
-    _, summary = bop.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames)
+    _, summary = scoring.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames)
     cols = ["obj_name", "n", "adds_auc", "add_auc", "adds_recall_01d", "add_recall_01d"]
     print(summary[cols].to_string(index=False, float_format=lambda v: f"{v:.1f}"))
 

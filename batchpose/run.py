@@ -340,8 +340,8 @@ def main(
         csv_path = bop.write_bop_csv(pd.read_parquet(poses_path), run_dir / "poses.csv")
         mcap_path = export_mcap.main(run_dir, poses_path, models, man.frames, source, overwrite=overwrite)
         if report:
-            from batchpose.report import make_report
+            from batchpose.stages import report as report_stage
 
-            make_report.main(run_dir, overwrite=True)
+            report_stage.main(run_dir, overwrite=True)
         log.info("done in %.1f s: %s, %s", time.perf_counter() - t_start, csv_path, mcap_path)
         return run_dir

@@ -2,7 +2,7 @@
 
 Runs ``gnc_pose``, ``paper``, ``ransac_only``, ``no_geom_weights`` and ``tp_ub`` (``batchpose.run.main``,
 ``--jobs 2``, fresh run folders, template libraries built first and not timed) and prints
-``batchpose.report.make_report.compare``'s table: detection, ADD-S / ADD AUC, recalls at 0.1 d, median errors,
+``batchpose.stages.report.compare``'s table: detection, ADD-S / ADD AUC, recalls at 0.1 d, median errors,
 compute time per (frame, object) and estimation wall time per pair. With a baseline (default
 ``benchmarks/accuracy_baseline.csv``, written by ``--save-baseline``) it flags any pipeline whose ADD-S or
 ADD AUC fell by more than ``--tolerance`` points, so a speed-up that costs accuracy shows.
@@ -30,9 +30,9 @@ from _common import REPO, SHARED_DATA, StageTimer, code_version, machine, run_in
 
 from batchpose import run as run_mod  # noqa: E402
 from batchpose.io import library
-from batchpose.report import make_report  # noqa: E402
 from batchpose.stages import build_templates  # noqa: E402
 from batchpose.stages import estimate as estimate_poses
+from batchpose.stages import report as report_stage
 
 PIPELINES = ("gnc_pose", "paper", "ransac_only", "no_geom_weights", "tp_ub")
 BASELINE = Path(__file__).resolve().parent / "accuracy_baseline.csv"
@@ -117,7 +117,7 @@ def main() -> int:
                 wall = time.perf_counter() - t0
             timing[name] = (t_templates, tm.total["estimate"], wall)
             run_dirs.append(run_dir)
-        make_report.compare(run_dirs, base / "compare")
+        report_stage.compare(run_dirs, base / "compare")
         df = pd.read_csv(base / "compare" / "compare.csv")
         df["run"] = list(paths)
 

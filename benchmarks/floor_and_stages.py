@@ -70,10 +70,10 @@ from batchpose.io.mesh import load_mesh  # noqa: E402
 from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.estimator import PoseEstimator  # noqa: E402
 from batchpose.method.features import detect, make_sift, to_gray  # noqa: E402
-from batchpose.report import make_report  # noqa: E402,I001
 from batchpose.stages import build_templates, export_mcap  # noqa: E402,I001
 from batchpose.stages import estimate as estimate_poses
 from batchpose.stages import ingest as ingest_frames
+from batchpose.stages import report as report_stage
 
 RATIO_ONE = 1.3  # end-to-end / floor with one target object per frame
 RATIO_EXTRA = 0.3  # added per further object, in floors
@@ -295,9 +295,9 @@ def own_costs(poses: pd.DataFrame, floor_s: float) -> str:
 
 
 def accuracy(run_dir: Path, out: Path) -> dict | None:
-    """ADD-S / ADD figures of a run (``make_report.compare``), None without ground truth."""
+    """ADD-S / ADD figures of a run (``batchpose.stages.report.compare``), None without ground truth."""
     try:
-        make_report.compare([run_dir], out)
+        report_stage.compare([run_dir], out)
     except Exception as e:  # accuracy is context here, not the measurement
         logging.getLogger("batchpose").warning("accuracy not computed: %s", e)
         return None

@@ -36,10 +36,10 @@ from _common import MB, REPO, RssSampler, StageTimer, code_version, machine, run
 from batchpose import run as run_mod  # noqa: E402
 from batchpose.io import bop_csv as bop  # noqa: E402
 from batchpose.io import library
-from batchpose.report import make_report  # noqa: E402
 from batchpose.stages import build_templates, export_mcap  # noqa: E402
 from batchpose.stages import estimate as estimate_poses
 from batchpose.stages import ingest as ingest_frames
+from batchpose.stages import report as report_stage
 
 W, H = 640, 480
 K = np.array([[620.0, 0.0, 319.5], [0.0, 620.0, 239.5], [0.0, 0.0, 1.0]])
@@ -274,7 +274,7 @@ def main() -> int:
         est_start = timer.starts["estimate"][0]
         shards = quarters(run_dir, est_start)
         acc_dir = base / "compare"
-        make_report.compare([run_dir], acc_dir)
+        report_stage.compare([run_dir], acc_dir)
         acc = pd.read_csv(acc_dir / "compare.csv").iloc[0]
 
     n = int(shards["cum"].iloc[-1])

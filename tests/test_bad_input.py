@@ -110,12 +110,12 @@ def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
     import errno
 
     from batchpose import cli
-    from batchpose.report import make_report
+    from batchpose.stages import report as report_stage
 
     def full(run_dir, overwrite=False):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(make_report, "main", full)
+    monkeypatch.setattr(report_stage, "main", full)
     assert cli.main(["report", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1, err

@@ -11,6 +11,7 @@ import pytest
 from batchpose.core.poses import PoseRecord
 from batchpose.errors import DataError
 from batchpose.io import bop_csv as bop
+from batchpose.report import scoring
 
 
 def _T(R: np.ndarray, t: list[float]) -> np.ndarray:
@@ -167,13 +168,13 @@ def test_score_bop_csv(tmp_path):
     names = {2: "a", 5: "b", 9: "c"}
 
     with pytest.raises(DataError, match="cannot match BOP image ids"):
-        bop.score_bop_csv(path, gt, points, diam, names)
-    inst, summary = bop.score_bop_csv(path, gt, points, diam, names, frames=frames)
+        scoring.score_bop_csv(path, gt, points, diam, names)
+    inst, summary = scoring.score_bop_csv(path, gt, points, diam, names, frames=frames)
     s = summary.set_index("obj_name")
     assert s.loc["a", "add_auc"] == pytest.approx(100.0) and s.loc["b", "adds_auc"] == pytest.approx(100.0)
     assert s.loc["c", "add_auc"] == 0.0 and s.loc["c", "n_missing"] == 1
     np.testing.assert_allclose(inst.loc[inst["obj_name"] != "c", "add_m"], 0.0, atol=1e-9)
     # obj_id 5 unknown: b's estimates are dropped, so b becomes missing.
-    _, summary = bop.score_bop_csv(path, gt, points, diam, {2: "a", 9: "c"}, frames=frames)
+    _, summary = scoring.score_bop_csv(path, gt, points, diam, {2: "a", 9: "c"}, frames=frames)
     assert summary.set_index("obj_name").loc["b", "n_missing"] == 2
     assert math.isclose(summary.set_index("obj_name").loc["pooled", "add_auc"], 100 * 1 / 4)

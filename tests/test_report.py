@@ -21,7 +21,8 @@ import yaml
 
 from batchpose.core.poses import PoseRecord
 from batchpose.errors import DataError, MeshError
-from batchpose.report import make_report
+from batchpose.report import figures, overlays, runs
+from batchpose.stages import report as report_stage
 
 W, H = 160, 120
 K = np.array([[200.0, 0.0, 80.0], [0.0, 200.0, 60.0], [0.0, 0.0, 1.0]])
@@ -218,7 +219,7 @@ def _decodes(b64: str) -> np.ndarray:
 @pytest.fixture(scope="module")
 def report(tmp_path_factory) -> Path:
     run = make_run(tmp_path_factory.mktemp("report"))
-    return make_report.main(run)
+    return report_stage.main(run)
 
 
 def test_summary_csv(report):
@@ -285,13 +286,13 @@ def test_html_content(report):
 def test_overlay_draws_at_projected_pose():
     rgb = np.zeros((H, W, 3), np.uint8)
     pts = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
-    img = make_report.draw_overlay(rgb, K, pts, [(_T(np.eye(3), [0, 0, 1.0]), (255, 0, 0))], out_height=H)
+    img = overlays.draw_overlay(rgb, K, pts, [(_T(np.eye(3), [0, 0, 1.0]), (255, 0, 0))], out_height=H)
     assert img.shape[0] == H and img[..., 0].max() == 255 and img[..., 1].max() == 0
 
 
 def test_report_without_ground_truth(tmp_path):
     run = make_run(tmp_path, with_gt=False)
-    out = make_report.main(run)
+    out = report_stage.main(run)
     s = pd.read_csv(out / "summary.csv").set_index("obj_name")
     # obj_a: 3 ok of 4 rows; obj_b: 3 of 3 (its missing frame has no row); all: 6 / 7.
     assert s.loc["obj_a", "detection_rate_pct"] == pytest.approx(75.0)
@@ -309,7 +310,7 @@ def test_report_without_ground_truth(tmp_path):
 
 def test_gallery_failure_is_explained(tmp_path):
     run = make_run(tmp_path, frames_root=tmp_path / "nowhere")
-    html = (make_report.main(run) / "index.html").read_text()
+    html = (report_stage.main(run) / "index.html").read_text()
     note = re.search(r'<p class="warn" id="gallery-note">([^<]*)</p>', html)
     assert note, "the report must say why there is no gallery"
     assert ("does not exist" in note.group(1)) if HAVE_DATASETS else ("unavailable" in note.group(1))
@@ -319,29 +320,29 @@ def test_gallery_failure_is_explained(tmp_path):
 
 def test_rerun_skips_and_overwrite_rebuilds(tmp_path, caplog):
     run = make_run(tmp_path)
-    index = make_report.main(run) / "index.html"
+    index = report_stage.main(run) / "index.html"
     before = index.stat().st_mtime_ns
     with caplog.at_level("INFO", logger="batchpose"):
-        make_report.main(run)
+        report_stage.main(run)
     assert index.stat().st_mtime_ns == before and "Skipping report" in caplog.text
-    make_report.main(run, overwrite=True)
+    report_stage.main(run, overwrite=True)
     assert index.stat().st_mtime_ns > before
     assert not list((run / "report").glob("*.tmp"))
 
 
 def test_missing_poses_is_a_data_error(tmp_path):
     with pytest.raises(DataError, match="no poses.parquet"):
-        make_report.main(tmp_path)
+        report_stage.main(tmp_path)
     (tmp_path / "config.yaml").write_text("pipeline: {}\n")  # a run killed before its poses were merged
     with pytest.raises(DataError, match="the run is unfinished .* rerun the same `batchpose run` command"):
-        make_report.main(tmp_path)
+        report_stage.main(tmp_path)
 
 
 def test_compare(tmp_path):
     good = make_run(tmp_path / "good")
     bad = make_run(tmp_path / "bad", shift_mm=50.0)  # obj_a's third estimate 50 mm off
     nogt = make_run(tmp_path / "nogt", with_gt=False)
-    out = make_report.compare([good, bad, nogt], tmp_path / "cmp")
+    out = report_stage.compare([good, bad, nogt], tmp_path / "cmp")
     table = pd.read_csv(out / "compare.csv")
     assert list(table["run"]) == ["good/run", "bad/run", "nogt/run"]
     assert table.loc[0, "add_auc_pooled"] == pytest.approx(75.0)
@@ -358,7 +359,7 @@ def test_compare(tmp_path):
 
 
 def _summary(run: Path) -> pd.DataFrame:
-    return pd.read_csv(make_report.main(run) / "summary.csv").set_index("obj_name")
+    return pd.read_csv(report_stage.main(run) / "summary.csv").set_index("obj_name")
 
 
 def test_millimetre_models_score_like_metres(tmp_path, caplog):
@@ -400,21 +401,21 @@ def test_points_file_in_other_units_is_refused(tmp_path, scale):
     pts = np.loadtxt(tmp_path / "data" / "obj_a.xyz")
     np.savetxt(tmp_path / "data" / "obj_a.xyz", pts * scale, fmt="%.6f")
     with pytest.raises(DataError, match=r"obj_a\.points: .*obj_a\.xyz: the points span .* neither in metres nor"):
-        make_report.main(run)
+        report_stage.main(run)
 
 
 def test_millimetre_models_refused_with_on_millimetres_refuse(tmp_path):
     run = make_run(tmp_path, model_scale=1000.0)
     (run / "config.yaml").write_text(yaml.safe_dump({"pipeline": {"mesh": {"on_millimetres": "refuse"}}}))
     with pytest.raises(DataError, match=r"obj_a\.xyz: .*look like millimetres; .*on_millimetres: convert"):
-        make_report.main(run)
+        report_stage.main(run)
     objects = json.loads((run / "objects.json").read_text())
     objects["obj_a"]["points"] = None  # mesh samples instead: the mesh's own refusal, as in load_mesh
     objects["obj_a"]["mesh"] = objects["obj_b"]["mesh"]
     objects["obj_a"]["diameter_m"] = objects["obj_b"]["diameter_m"]
     (run / "objects.json").write_text(json.dumps(objects))
     with pytest.raises(MeshError, match=r"obj_b\.ply: .*looks like millimetres; .*on_millimetres: convert"):
-        make_report.main(run)
+        report_stage.main(run)
 
 
 def _scaled_obj(src: Path, dst_dir: Path, scale: float) -> Path:
@@ -462,7 +463,7 @@ def test_unit_scale_is_load_mesh_rule(tmp_path):
         n: {"mesh": str(p), "points": None, "diameter_m": load_mesh(GELATIN).diameter_m}
         for n, p in [("m", GELATIN), ("mm", mm)]
     }
-    points, _ = make_report.load_model_points(objects, ["m", "mm"])
+    points, _ = runs.load_model_points(objects, ["m", "mm"])
     np.testing.assert_allclose(points["mm"], points["m"], atol=1e-8)
 
 
@@ -550,8 +551,8 @@ def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
         }
     )
     wrong = np.array([False, False, False, False, False, False, True])
-    kinds = make_report.timeline_kinds(rows, wrong)
-    names = [make_report.TIMELINE_KINDS[k][0] for k in kinds]
+    kinds = figures.timeline_kinds(rows, wrong)
+    names = [figures.TIMELINE_KINDS[k][0] for k in kinds]
     assert names == [
         "ok, full estimate",
         "ok, tracked",
@@ -565,13 +566,13 @@ def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
     t = np.array([0.0, 1.0, 2.0, 3.0, 0.0])
     obj = np.array(["a", "a", "a", "a", "b"])
     kind = np.array([5, 1, 4, 5, 3])
-    grid = make_report.timeline_grid(t, obj, kind, ["a", "b"], columns=2)
+    grid = figures.timeline_grid(t, obj, kind, ["a", "b"], columns=2)
     np.testing.assert_array_equal(grid, [[1, 4], [3, -1]])
 
 
 def test_timeline_section_in_both_reports(report, tmp_path):
     assert "plot-timeline" in _imgs((report / "index.html").read_text())
-    out = make_report.main(make_run(tmp_path, with_gt=False))
+    out = report_stage.main(make_run(tmp_path, with_gt=False))
     html = (out / "index.html").read_text()
     assert 'id="timeline"' in html and "confidence of the ok poses" in html
     assert _decodes(_imgs(html)["plot-timeline"]).shape[1] >= 900

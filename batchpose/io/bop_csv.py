@@ -1,4 +1,5 @@
-"""BOP results CSV (SPEC §6), so third-party scorers can read our poses and we can score theirs.
+"""BOP results CSV (SPEC §6), so third-party scorers can read our poses and we can score theirs
+(:func:`batchpose.report.scoring.score_bop_csv`).
 
 Format (BOP Challenge 2019+): header ``scene_id,im_id,obj_id,score,R,t,time``; one line per estimate;
 R row-major, 9 numbers separated by spaces; t in millimetres, 3 numbers separated by spaces; time in
@@ -21,7 +22,6 @@ import pandas as pd
 
 from batchpose.errors import DataError
 from batchpose.io.files import write_bytes_atomic
-from batchpose.report import metrics
 
 log = logging.getLogger("batchpose")
 
@@ -219,7 +219,8 @@ def bop_to_poses(
     frame_ids: Mapping[tuple[int, int], str] | None = None,
     where: str = "BOP results",
 ) -> pd.DataFrame:
-    """Turn a BOP table into ``poses.parquet``-style rows (status ok) that :func:`metrics.score` accepts.
+    """Turn a BOP table into ``poses.parquet``-style rows (status ok) that
+    :func:`batchpose.report.metrics.score` accepts.
 
     Args:
         table: as returned by :func:`read_bop_csv`.
@@ -269,46 +270,3 @@ def bop_to_poses(
         "time_total_s",
     ]
     return pd.DataFrame(rows, columns=cols)
-
-
-def score_bop_csv(
-    csv_path: Path | str,
-    gt: pd.DataFrame,
-    points: Mapping[str, np.ndarray],
-    diameters: Mapping[str, float],
-    obj_names: Mapping[int, str],
-    frames: pd.DataFrame | None = None,
-) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Score any BOP-format results file against our ground truth (``batchpose score``).
-
-    Args:
-        csv_path: BOP results CSV.
-        gt: ground-truth table (frame_id, obj_name, R, t_m; see :func:`batchpose.report.metrics.score`) with
-            scene_id and im_id columns, or give ``frames``.
-        points: obj_name -> (N, 3) model points, metres.
-        diameters: obj_name -> diameter, metres.
-        obj_names: obj_id -> obj_name (YCB-Video: 1-based line of ``classes.txt``).
-        frames: optional table with frame_id, scene_id, im_id (``frames.parquet``) to map BOP image ids to
-            frame ids when ``gt`` has no scene_id / im_id.
-
-    Returns:
-        ``(per_instance, summary)`` as :func:`batchpose.report.metrics.score` returns them.
-
-    Raises:
-        DataError: malformed CSV (file and line named), or no way to map images to ground-truth frames.
-    """
-    csv_path = Path(csv_path)
-    table = read_bop_csv(csv_path)
-    id_source = gt if {"scene_id", "im_id"} <= set(gt.columns) else frames
-    if id_source is None or not {"frame_id", "scene_id", "im_id"} <= set(id_source.columns):
-        raise DataError(
-            f"{csv_path}: cannot match BOP image ids to ground truth: the ground-truth table has no "
-            "scene_id / im_id columns and no frames table (frame_id, scene_id, im_id) was given"
-        )
-    frame_ids = {
-        (int(s), int(i)): f
-        for f, s, i in zip(id_source["frame_id"], id_source["scene_id"], id_source["im_id"], strict=True)
-    }
-    est = bop_to_poses(table, obj_names, frame_ids, where=str(csv_path))
-    log.info("%s: %d estimates for %d ground-truth instances", csv_path, len(est), len(gt))
-    return metrics.score(est, gt, points, diameters)
