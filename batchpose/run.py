@@ -13,6 +13,7 @@ import logging
 import os
 import platform
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +54,7 @@ _VERSIONED = (
 
 
 def versions() -> dict:
-    out = {"python": platform.python_version(), "platform": platform.platform()}
+    out: dict[str, str | None] = {"python": platform.python_version(), "platform": platform.platform()}
     for pkg in _VERSIONED:
         try:
             out[pkg] = importlib.metadata.version(pkg)
@@ -203,7 +204,7 @@ def main(
     manifest: Path,
     run_dir: Path,
     cache_dir: Path | None = None,
-    overrides: list[str] = (),
+    overrides: Sequence[str] = (),
     jobs: int = 2,
     backend: str = "loky",
     scheduler: str | None = None,

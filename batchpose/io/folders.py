@@ -49,17 +49,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 INTRINSICS_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
 
 
-
-
-
-
 def image_format_of(path: Path) -> str:
     """``"png"`` or ``"jpeg"`` from a file suffix."""
     return "png" if path.suffix.lower() == ".png" else "jpeg"
-
-
-
-
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -542,11 +534,3 @@ class ImagesFrameSource(FrameSource):
 
 
 # --------------------------------------------------------------------------------------------- factory
-
-
-
-
-
-
-
-

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 from PIL import Image
+from trimesh.visual import ColorVisuals, TextureVisuals
 
 from batchpose.config import MeshConfig
 from batchpose.core.model import ObjectModel, diameter
@@ -25,8 +26,6 @@ _REF_RE = re.compile(rb"^\s*(?:mtllib|map_Kd|map_Ka)\s+(.+?)\s*$", re.MULTILINE)
 
 #: Bump when what :func:`load_mesh` makes of a file changes, so cached meshes are not reused.
 MESH_CACHE_FORMAT = 2  # 2: ObjectModel moved to batchpose.core.model (pickled by module path)
-
-
 
 
 def _referenced_files(path: Path) -> list[Path]:
@@ -52,19 +51,18 @@ def content_hash(path: Path) -> str:
     return h.hexdigest()
 
 
-
-
 def _limit_texture(mesh: trimesh.Trimesh, max_px: int) -> None:
     """Downscale the mesh's texture image in place so its longer side is at most ``max_px``."""
-    if max_px <= 0 or mesh.visual.kind != "texture":
+    visual = mesh.visual
+    if max_px <= 0 or not isinstance(visual, TextureVisuals):  # the only visual of kind "texture"
         return
-    mat = mesh.visual.material
+    mat = visual.material
     for attr in ("image", "baseColorTexture"):
         img = getattr(mat, attr, None)
         if img is not None and hasattr(img, "size") and max(img.size) > max_px:
             scale = max_px / max(img.size)
             size = (max(1, round(img.size[0] * scale)), max(1, round(img.size[1] * scale)))
-            setattr(mat, attr, img.resize(size, Image.LANCZOS))
+            setattr(mat, attr, img.resize(size, Image.Resampling.LANCZOS))
 
 
 def unit_scale(path: Path, bounds: np.ndarray, conf: MeshConfig = MeshConfig()) -> float:
@@ -213,14 +211,14 @@ def _parse_mesh(path: Path, conf: MeshConfig, name: str, digest: str) -> ObjectM
         raise MeshError(f"{path}: cannot read mesh: not a valid {kind} file ({msg})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or len(loaded.vertices) == 0:
         raise MeshError(f"{path}: mesh has no faces")
-    kind = loaded.visual.kind if loaded.visual is not None else None
-    has_texture = (
-        kind == "texture"
-        and getattr(loaded.visual, "uv", None) is not None
-        and getattr(loaded.visual.material, "image", None) is not None
-    ) or (kind == "texture" and getattr(loaded.visual.material, "baseColorTexture", None) is not None)
-    if kind == "vertex":
-        cols = np.asarray(loaded.visual.vertex_colors)[:, :3]
+    # trimesh's visuals: TextureVisuals (kind "texture") or ColorVisuals (kind "vertex", "face" or None)
+    visual = loaded.visual
+    has_texture = isinstance(visual, TextureVisuals) and (
+        (getattr(visual, "uv", None) is not None and getattr(visual.material, "image", None) is not None)
+        or getattr(visual.material, "baseColorTexture", None) is not None
+    )
+    if isinstance(visual, ColorVisuals) and visual.kind == "vertex":
+        cols = np.asarray(visual.vertex_colors)[:, :3]
         has_texture = cols.size > 0 and float(cols.std()) > 0.0
     if not has_texture:
         raise MeshError(

@@ -203,6 +203,7 @@ class SelectedFrames(FrameSource):
             if (k - 1) % sel.every == 0:
                 yield dataclasses.replace(f, im_step=sel.every) if sel.every > 1 else f
         if first_ns is not None:
+            assert start_ns is not None and last_ns is not None  # set with first_ns, by the first frame
             self.span_s = ((first_ns - start_ns) * 1e-9, (last_ns - start_ns) * 1e-9)
         missing = [i for i in sel.frame_ids if i not in seen]
         if missing:

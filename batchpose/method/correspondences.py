@@ -21,6 +21,7 @@ from batchpose.method.templates import TemplateLibrary
 
 log = logging.getLogger("batchpose")
 
+_LIBC: ctypes.CDLL | None
 try:
     _LIBC = ctypes.CDLL(None)
 except OSError:  # pragma: no cover - platforms without a C library handle

@@ -62,8 +62,6 @@ SEARCH_DAMPING = 0.001
 MATCH_WEIGHT = 0.1
 
 
-
-
 @dataclass(frozen=True)
 class _View:
     view_id: int
@@ -155,7 +153,7 @@ def pose_from_view(lib, view_id: int, angle: float, depth_m: float, centre_xy, K
     ray = np.linalg.solve(K, np.array([centre_xy[0], centre_xy[1], 1.0]))
     ray /= np.linalg.norm(ray)
     axis = np.cross([0.0, 0.0, 1.0], ray)
-    sin_a = np.linalg.norm(axis)
+    sin_a = float(np.linalg.norm(axis))
     R_ray = np.eye(3) if sin_a < 1e-12 else cv2.Rodrigues(axis / sin_a * np.arcsin(min(sin_a, 1.0)))[0]
     out = np.eye(4)
     out[:3, :3] = R_ray @ R
@@ -234,12 +232,6 @@ def _colour_odds(
     bg = bg / max(bg.sum(), 1)
     odds = np.log((hist + 1e-3) / (bg + 1e-3)).clip(-3, 3)
     return float(odds[bins[seen]].mean())
-
-
-
-
-
-
 
 
 def distinct_matches(

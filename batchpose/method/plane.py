@@ -57,12 +57,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from batchpose.config import PlaneConfig
 from batchpose.method.appearance import N_BINS, colour_bins, texture_match
+
+if TYPE_CHECKING:
+    import trimesh
 
 #: The coarse search's resolution (every LEVEL-th pixel).
 LEVEL = 4
@@ -130,7 +134,9 @@ class Placed:
 
 
 def support_plane(
-    found: dict[str, tuple[np.ndarray, np.ndarray]], conf: PlaneConfig, stable: dict[str, np.ndarray] | None = None
+    found: dict[str, tuple[np.ndarray, trimesh.Trimesh]],
+    conf: PlaneConfig,
+    stable: dict[str, np.ndarray] | None = None,
 ) -> Plane | None:
     """The plane the found objects rest on, or None when they do not rest on one.
 
@@ -145,11 +151,11 @@ def support_plane(
     if len(found) < conf.min_objects:
         return None
     points = {n: hull.vertices @ T[:3, :3].T + T[:3, 3] for n, (T, hull) in found.items()}
-    normals = []
+    down_faces = []
     for T, hull in found.values():
         biggest = np.argsort(-hull.area_faces)[: conf.plane_candidates]
-        normals.append(-(hull.face_normals[biggest] @ T[:3, :3].T))  # a resting face points down
-    normals = np.concatenate(normals)
+        down_faces.append(-(hull.face_normals[biggest] @ T[:3, :3].T))  # a resting face points down
+    normals = np.concatenate(down_faces)
     lows = np.stack([(p @ normals.T).min(axis=0) for p in points.values()])  # (objects, candidates)
     offset = lows.mean(axis=0)
     spread = lows.max(axis=0) - lows.min(axis=0)
@@ -319,6 +325,7 @@ def search_plane(
         judge, floor = judge_around([previous])
         score, placed = _refine(previous, plane, target, judge, FINE_STEPS)
         if passes(score, placed, floor):
+            assert placed is not None  # passes() refuses None
             return dataclasses.replace(placed, followed=True)
     places = _places(odds, K, plane, target, conf.starts * CANDIDATES_PER_START, conf)
     if not places:
@@ -336,6 +343,7 @@ def search_plane(
         refined += _refaced_starts(refined, plane, target, judge)
     refined = sorted((r for r in refined if passes(*r, floor, final=False)), key=lambda r: -r[0])
     for start in refined:
+        assert start[1] is not None  # passes() refused the None placements
         best = _refine(start[1].cam_from_model, plane, target, judge, FINE_STEPS)
         if passes(*best, floor):
             return best[1]
@@ -421,7 +429,7 @@ def _places(
                     best = np.where(band, np.maximum(best, S), best)
                 z_k *= SIZE_STEP
 
-            def pose_at(y: int, x: int, R=R, z=z) -> np.ndarray:
+            def pose_at(y: int | np.integer, x: int | np.integer, R=R, z=z) -> np.ndarray:
                 T = np.eye(4)
                 T[:3, :3] = R
                 T[:3, 3] = z[y, x] * rays[y, x] - R @ target.centre
@@ -446,12 +454,12 @@ def _places(
     taken = [_centre(T, target) for T in distinct]
     spots: list[tuple[np.ndarray, list[np.ndarray]]] = []
     for _, T in sorted(standing, key=lambda f: -f[0]):
-        c = _centre(T, target)
-        if any(_same_place(c, t, target) for t in taken):
+        centre = _centre(T, target)
+        if any(_same_place(centre, t, target) for t in taken):
             continue
-        at = [s for s in spots if _same_place(c, s[0], target)]
+        at = [s for s in spots if _same_place(centre, s[0], target)]
         if not at and len(spots) < SPOTS:
-            spots.append((c, [T]))
+            spots.append((centre, [T]))
         elif at and len(at[0][1]) < CANDIDATES_PER_START and not any(_near(T, k, target) for k in at[0][1]):
             at[0][1].append(T)
     return distinct + [T for _, turns in spots for T in turns]

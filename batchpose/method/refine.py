@@ -144,5 +144,6 @@ def refine_pose(
         cand = Refined(res, x, X, support_px)
         if best is not None and cand.score < best.score:
             break
+        assert res.cam_from_model is not None  # an "ok" result carries its pose
         best, T = cand, res.cam_from_model
     return best

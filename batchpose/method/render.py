@@ -9,6 +9,7 @@ from __future__ import annotations
 import atexit
 import os
 import threading
+from typing import Any
 
 import numpy as np
 
@@ -74,10 +75,10 @@ class Renderer:
 
     def __init__(self) -> None:
         self._pr = _import_pyrender()
-        self._renderer = None
+        self._renderer: Any = None  # pyrender.OffscreenRenderer (pyrender ships no types)
         self._size: tuple[int, int] | None = None
         self._meshes: dict[str, object] = {}  # key -> pyrender.Mesh (kept across contexts)
-        self._scene = None  # this context's scene
+        self._scene: Any = None  # this context's pyrender.Scene
         self._lock = threading.Lock()
 
     def _context(self, width: int, height: int):

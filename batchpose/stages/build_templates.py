@@ -30,9 +30,6 @@ from batchpose.stages.workers import loky_options
 log = logging.getLogger("batchpose")
 
 
-
-
-
 def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: int):
     """Template intrinsics and size: the data set camera's, or ``render.width/height`` with K rescaled."""
     w = conf.render.width or width or 640
@@ -42,20 +39,6 @@ def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: in
         K[0] *= w / width
         K[1] *= h / height
     return K, w, h
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 
 
 def main(
