@@ -272,7 +272,7 @@ def _timeline_values(
     ok = (poses["status"] == "ok").to_numpy()
     for name, c in zip(objects, colors(len(objects)), strict=True):
         sel = ok & (poses["obj_name"] == name).to_numpy()
-        if adds is not None:
+        if adds is not None and diam is not None:  # (the diameters come with the ADD-S)
             ax.scatter(t_s[sel], np.maximum(adds[sel] * 1000.0, 1e-2), s=6, color=c, label=name)
             d = diam[(poses["obj_name"] == name).to_numpy()]
             if np.isfinite(d).any():  # the 0.1 d line above which an ok pose counts as wrong

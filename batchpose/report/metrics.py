@@ -307,6 +307,25 @@ def score(
         DataError: a required column is missing, an object has no points or diameter, or its points and
             diameter disagree in scale (:data:`SPAN_RATIO_RANGE`; e.g. millimetre points).
     """
+    _check_inputs(est, gt, points, diameters)
+    rows, extra = _instance_rows(est, gt, points, diameters)
+    cols = list(INSTANCE_COLUMNS[:2]) + extra + list(INSTANCE_COLUMNS[2:])
+    per_instance = pd.DataFrame(rows, columns=cols)
+    summary, pooled = _summary(per_instance)
+    objects = sorted(set(per_instance["obj_name"]))
+    log.info(
+        "scored %d instances of %d objects: ADD-S AUC %.1f, ADD AUC %.1f (pooled), %d failed",
+        len(per_instance),
+        len(objects),
+        pooled["adds_auc"],
+        pooled["add_auc"],
+        len(per_instance) - pooled["n_ok"],
+    )
+    return per_instance, summary
+
+
+def _check_inputs(est: pd.DataFrame, gt: pd.DataFrame, points, diameters) -> None:
+    """:func:`score`'s input checks (its ``Raises``)."""
     for name, table, cols in (
         ("estimates", est, ("frame_id", "obj_name", "status", "R", "t_m", "confidence")),
         ("ground truth", gt, ("frame_id", "obj_name", "R", "t_m")),
@@ -321,6 +340,9 @@ def score(
             raise DataError(f"ground truth: object {obj!r} has no diameter")
         _check_scale(obj, points[obj], diameters[obj])
 
+
+def _instance_rows(est: pd.DataFrame, gt: pd.DataFrame, points, diameters) -> tuple[list[dict], list[str]]:
+    """One row per ground-truth instance (see :func:`score`), and the extra ground-truth columns carried over."""
     picked = _pick_estimates(est)
     by_key = {(r["frame_id"], r["obj_name"]): r for r in picked.to_dict("records")}
     extra = [c for c in gt.columns if c not in ("frame_id", "obj_name", "R", "t_m")]
@@ -356,13 +378,15 @@ def score(
                 trans_err_mm=translation_error_mm(est_pose[1], gt_pose[1]),
             )
         rows.append(row)
-    cols = list(INSTANCE_COLUMNS[:2]) + extra + list(INSTANCE_COLUMNS[2:])
-    per_instance = pd.DataFrame(rows, columns=cols)
+    return rows, extra
 
+
+def _summary(per_instance: pd.DataFrame) -> tuple[pd.DataFrame, dict]:
+    """The per-object rows, then ``mean`` and ``pooled`` (see :func:`score`); and the pooled row."""
     objects = sorted(set(per_instance["obj_name"]))
     obj_rows = [_summary_row(o, per_instance[per_instance["obj_name"] == o]) for o in objects]
     summary = pd.DataFrame(obj_rows, columns=list(_summary_row("", per_instance.iloc[:0])))
-    mean = {"obj_name": "mean"}
+    mean: dict[str, object] = {"obj_name": "mean"}
     for c in summary.columns[1:]:
         if c == "n" or c.startswith("n_"):
             mean[c] = int(summary[c].sum())
@@ -373,12 +397,4 @@ def score(
     for c in summary.columns:
         if c == "n" or c.startswith("n_"):
             summary[c] = summary[c].astype(int)
-    log.info(
-        "scored %d instances of %d objects: ADD-S AUC %.1f, ADD AUC %.1f (pooled), %d failed",
-        len(per_instance),
-        len(objects),
-        pooled["adds_auc"],
-        pooled["add_auc"],
-        len(per_instance) - pooled["n_ok"],
-    )
-    return per_instance, summary
+    return summary, pooled

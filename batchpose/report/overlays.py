@@ -143,6 +143,7 @@ def _best_estimates(poses: pd.DataFrame) -> dict[tuple[str, str], tuple[np.ndarr
 def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
     """The best, worst (by ADD-S) and failed instances, each with its ground-truth pose."""
     est_by_key = _best_estimates(run.poses)
+    assert run.gt is not None  # only runs with ground truth have these cases
     gt_by_key = {(r["frame_id"], r["obj_name"]): r for r in run.gt.to_dict("records")}
     ok = per_instance[(per_instance["status"] == "ok") & np.isfinite(per_instance["adds_m"])]
     ok = ok.sort_values("adds_m", kind="stable")

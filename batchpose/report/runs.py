@@ -222,7 +222,7 @@ def _points_to_metres(pts: np.ndarray, diameter_m: float | None, mesh_conf: Mesh
     from batchpose.io.mesh import unit_scale
 
     if diameter_m is None:
-        return pts * unit_scale(label, np.stack([pts.min(axis=0), pts.max(axis=0)]), mesh_conf)
+        return pts * unit_scale(Path(label), np.stack([pts.min(axis=0), pts.max(axis=0)]), mesh_conf)
     span = diameter(pts)
     scale = next((s for s in (1.0, 0.001) if _agrees(span * s, diameter_m)), None)
     if scale is None:

@@ -72,6 +72,7 @@ DETECTION_COLUMNS = (
 def score_run(run: RunData) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Score a run with ground truth: ``(per_instance, summary)`` of :func:`metrics.score`, the summary with
     the paper's numbers beside ours (``paper_adds_auc``, ``paper_add_auc``)."""
+    assert run.gt is not None  # a run with ground truth
     points, diameters = run.model_points(run.gt["obj_name"])
     per_instance, summary = metrics.score(run.poses, run.gt, points, diameters)
     return per_instance, _paper_columns(summary)
