@@ -42,7 +42,9 @@ from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
 from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.estimator import PoseEstimator  # noqa: E402
+from batchpose.method.on_plane import use_plane  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402
+from batchpose.method.sequence import Sequence  # noqa: E402
 from batchpose.report.metrics import adds  # noqa: E402
 
 #: Reasons of the poses the plane search made (taken away from the objects looked at).
@@ -104,6 +106,7 @@ def main() -> int:
     pts = {n: np.loadtxt(objects[n]["points"]) for n in args.objects}
     renderer = get_renderer()
     estimators = {k: PoseEstimator(c, libs, models=models, renderer=renderer) for k, c in confs.items()}
+    sequences = {k: Sequence() for k in confs}  # each keeps its placements for the next frame
     looked_at = set(args.objects)
     print(f"# plane_replay: {machine()}; code {code_version()}; run {args.run}; --set {' '.join(args.overrides)}")
 
@@ -122,7 +125,7 @@ def main() -> int:
             if not lost:
                 break
             rgb = decode_image(frame) if rgb is None else rgb
-            est._use_plane(frame, rgb, records)
+            use_plane(est.objects, frame, rgb, records, sequences[key])
             for r in lost:
                 found.setdefault(r.obj_name, {})[key] = r.cam_from_model if r.ok else None
         for g in truth.itertuples():

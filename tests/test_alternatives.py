@@ -10,6 +10,7 @@ from batchpose.config import load_estimator_config
 from batchpose.core.frames import Camera
 from batchpose.errors import ConfigError
 from batchpose.method.estimator import PoseEstimator
+from batchpose.method.hypotheses import alternative
 from batchpose.method.refine import Refined
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose
@@ -35,8 +36,8 @@ def hypothesis(T: np.ndarray, X: np.ndarray, x: np.ndarray, score: int) -> Refin
 
 @pytest.fixture(scope="module")
 def scene(cracker_model, cracker_library):
-    """The box rendered at 1.2 m over a textured background, an estimator looking at that frame, the true
-    pose and a pose turned 30 degrees away from it."""
+    """The box rendered at 1.2 m over a textured background, an estimator and that frame as its checks see
+    it, the true pose and a pose turned 30 degrees away from it."""
     T, X, x = face_view(cracker_model, 1.2)
     img = compose(np.random.default_rng(3), cracker_model, T)
     return looking_at(img, cracker_model, cracker_library), T, turned(T, 30.0), X, x
@@ -46,10 +47,10 @@ def test_a_lower_scored_hypothesis_the_frame_shows_replaces_the_pose(scene, crac
     """The pose chosen is 30 degrees off; the right hypothesis scored a little lower (its guided score
     18 against 20). Rendered beside each other, the frame prefers it by colour and by edges: it replaces the
     pose, with its own pairs, and the reason says why."""
-    est, T, wrong, X, x = scene
+    (est, lab), T, wrong, X, x = scene
     tried = [hypothesis(wrong, X, x, 20), hypothesis(T, X, x, 18)]
     timings: dict[str, float] = {}
-    out = est._alternative(cracker_model.name, tried[0].result, tried, CAM, timings)
+    out = alternative(est.objects, lab, cracker_model.name, tried[0].result, tried, CAM, timings)
     assert out is not None
     (res, x_used, X_used), why = out
     assert rot_deg(res.cam_from_model, T) < 1e-6 and res.n_inliers == 18
@@ -62,27 +63,26 @@ def test_the_right_pose_is_kept_and_weak_or_equal_hypotheses_are_not_checked(sce
     """The right pose stays against a higher-scored wrong one; a right hypothesis under
     ``alternatives_score`` of the best score or with fewer than that fraction of the pose's inliers, or one
     within 5 degrees of the pose, is not considered; ``alternatives: 0`` checks nothing."""
-    est, T, wrong, X, x = scene
-    name = cracker_model.name
+    (est, lab), T, wrong, X, x = scene
+    name, objects = cracker_model.name, est.objects
     right = hypothesis(T, X, x, 18)
-    assert est._alternative(name, right.result, [right, hypothesis(wrong, X, x, 20)], CAM, {}) is None
+    assert alternative(objects, lab, name, right.result, [right, hypothesis(wrong, X, x, 20)], CAM, {}) is None
     weak = [hypothesis(wrong, X, x, 20), hypothesis(T, X, x, 9)]  # 9 < 0.5 * 20
-    assert est._alternative(name, weak[0].result, weak, CAM, {}) is None
+    assert alternative(objects, lab, name, weak[0].result, weak, CAM, {}) is None
     near = [hypothesis(wrong, X, x, 20), hypothesis(turned(wrong, 3.0), X, x, 19)]
-    assert est._alternative(name, near[0].result, near, CAM, {}) is None
+    assert alternative(objects, lab, name, near[0].result, near, CAM, {}) is None
     # a pose 48 pairs support (e.g. the template pairs') is not second-guessed by 18 (< 0.5 * 48)
     outnumbered = [hypothesis(wrong, X, x, 20), hypothesis(T, X, x, 18)]
-    assert est._alternative(name, as_result(wrong, X, x), outnumbered, CAM, {}) is None
-    assert est._alternative(name, hypothesis(wrong, X, x, 36).result, outnumbered, CAM, {}) is not None
+    assert alternative(objects, lab, name, as_result(wrong, X, x), outnumbered, CAM, {}) is None
+    assert alternative(objects, lab, name, hypothesis(wrong, X, x, 36).result, outnumbered, CAM, {}) is not None
     off = PoseEstimator(
         load_estimator_config({"alternatives": 0}),
-        est.libraries,
-        models=est.models,
-        renderer=est.renderer,
+        objects.libraries,
+        models=objects.models,
+        renderer=objects.renderer,
     )
-    off._lab = est._lab
     tried = [hypothesis(wrong, X, x, 20), hypothesis(T, X, x, 18)]
-    assert off._alternative(name, tried[0].result, tried, CAM, {}) is None
+    assert alternative(off.objects, lab, name, tried[0].result, tried, CAM, {}) is None
 
 
 @pytest.mark.parametrize(

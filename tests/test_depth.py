@@ -20,6 +20,7 @@ from batchpose.io.folders import BopFrameSource, YcbvFrameSource
 from batchpose.method.depth import Surface, align_to_depth
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.render import get_renderer
+from batchpose.method.sequence import Sequence
 from tests.conftest import K_SYN
 from tests.test_datasets import make_bop, make_ycbv
 from tests.test_estimate_synthetic import compose
@@ -498,10 +499,10 @@ def test_depth_search_follows_its_pose_into_the_next_frame(cracker_model, cracke
     T0 = _pose(cracker_model)
     T1 = T0.copy()
     T1[:3, 3] += [0.01, 0.0, 0.0]
-    reasons = []
+    reasons, seq = [], Sequence()
     for im_id, T in [(0, T0), (1, T1), (3, T0)]:
         rgb, depth = _search_scene(cracker_model, T)
-        (rec,) = est.estimate_frame(_rgbd_frame(rgb, depth, im_id), [cracker_model.name])
+        (rec,) = est.estimate_frame(_rgbd_frame(rgb, depth, im_id), [cracker_model.name], seq)
         assert rec.ok and _adds_mm(cracker_model, rec.cam_from_model, T) < 10
         reasons.append(rec.reason.split(" (")[0])
     assert reasons == [
@@ -511,7 +512,7 @@ def test_depth_search_follows_its_pose_into_the_next_frame(cracker_model, cracke
     ]
 
 
-def test_depth_search_for_a_lost_object_only_with_its_full_estimates(cracker_model, cracker_library):
+def test_depth_search_for_a_lost_object_only_with_its_full_estimates(cracker_model, cracker_library, monkeypatch):
     """With tracking on, an object lost since earlier frames (here: absent) is searched for only in the
     frames where its RGB estimate is a full one (every track.lost_full_every-th), not in every frame."""
     from batchpose.io.mesh import load_mesh
@@ -522,11 +523,17 @@ def test_depth_search_for_a_lost_object_only_with_its_full_estimates(cracker_mod
         {"features": {"n_features": 4}, "track": {"lost_full_every": 3}, "depth": {"enabled": True, "search": True}}
     )
     est = _estimator(conf, cracker_model, cracker_library)
-    searched = []
-    search = est._search
-    est._search = lambda rec, frame, *a: searched.append(frame.im_id) or search(rec, frame, *a)
+    from batchpose.method import with_depth
+
+    searched, seq = [], Sequence()
+    search = with_depth.search_missing
+    monkeypatch.setattr(
+        with_depth,
+        "search_missing",
+        lambda o, rec, frame, *a: searched.append(frame.im_id) or search(o, rec, frame, *a),
+    )
     rgb, depth = _search_scene(other, _pose(other))
     for im_id in range(5):
-        (rec,) = est.estimate_frame(_rgbd_frame(rgb, depth, im_id), [cracker_model.name])
+        (rec,) = est.estimate_frame(_rgbd_frame(rgb, depth, im_id), [cracker_model.name], seq)
         assert not rec.ok
     assert searched == [0, 3]

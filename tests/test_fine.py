@@ -12,9 +12,11 @@ from batchpose.config import EstimatorConfig, FineConfig, RefineConfig, load_est
 from batchpose.core.frames import Camera
 from batchpose.core.geometry import rotation_error_deg
 from batchpose.method.correspondences import Correspondences
-from batchpose.method.estimator import PoseEstimator, fine_keypoints
+from batchpose.method.estimator import PoseEstimator
 from batchpose.method.features import detect, to_gray
 from batchpose.method.gnc_pnp import PnpResult
+from batchpose.method.hypotheses import refine
+from batchpose.method.passes import fine_keypoints
 from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose, random_pose
@@ -100,7 +102,7 @@ def test_refinement_turns_a_flipped_pose_back(cracker_model, cracker_library, fl
     F = max(cracker_model.flips(), key=lambda F: abs(np.linalg.eigh(F[:3, :3])[1][2, -1]))  # about model z
     start = PnpResult("ok", cam_from_model=T @ F, inliers=np.ones(6, bool))
     none = Correspondences(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int32), (), 0)
-    out = est._refine(cracker_model.name, [(start, none, xy_q, desc_q)], Camera(K_SYN, 640, 480), xy_q, desc_q)
+    out = refine(est.objects, cracker_model.name, [(start, none, xy_q, desc_q)], Camera(K_SYN, 640, 480), xy_q, desc_q)
     if flips:
         assert out is not None and rot_deg(out.result.cam_from_model, T) < 2.0
         assert np.linalg.norm(out.result.cam_from_model[:3, 3] - T[:3, 3]) < 0.01
@@ -131,14 +133,14 @@ def test_implausible_poses_are_failed_not_reported(cracker_model, cracker_librar
     cam = Camera(K_SYN, 640, 480)
     libs = {cracker_model.name: cracker_library}
     est = PoseEstimator(EstimatorConfig(), libs)
-    assert est._implausible(cracker_model.name, T, cam) == ""
+    assert est.objects.implausible(cracker_model.name, T, cam) == ""
     far, near, behind = T.copy(), T.copy(), T.copy()
     far[:3, 3] *= 200.0
     near[:3, 3] *= 0.02
     behind[:3, 3] *= -1.0
-    assert "would span" in est._implausible(cracker_model.name, far, cam)
-    assert "would span" in est._implausible(cracker_model.name, near, cam)
-    assert "behind the camera" in est._implausible(cracker_model.name, behind, cam)
+    assert "would span" in est.objects.implausible(cracker_model.name, far, cam)
+    assert "would span" in est.objects.implausible(cracker_model.name, near, cam)
+    assert "behind the camera" in est.objects.implausible(cracker_model.name, behind, cam)
     rec = est.estimate_image(img, cam, [cracker_model.name])[0]
     assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
     strict = PoseEstimator(dataclasses.replace(EstimatorConfig(), min_object_px=5000.0), libs)
@@ -193,7 +195,7 @@ def test_staged_view_matching_gives_the_pairs_of_all_views(cracker_model, cracke
     """match.first_views: the candidates of the first 8 voted views plus those of the other 24 select
     exactly the pairs that matching all 32 at once does; the estimator finds the pose either way and, on a
     sharp frame (strong after 8 views), never matches the other 24."""
-    import batchpose.method.estimator as est_mod  # noqa: PLC0415
+    import batchpose.method.passes as passes_mod  # noqa: PLC0415
     from batchpose.method.correspondences import (  # noqa: PLC0415
         flann_index,
         match_template_to_query,
@@ -224,7 +226,7 @@ def test_staged_view_matching_gives_the_pairs_of_all_views(cracker_model, cracke
         tested.append(len(views_))
         return template_to_query_candidates(query_index, lib_, conf_, mask, views_)
 
-    monkeypatch.setattr(est_mod, "template_to_query_candidates", spy)
+    monkeypatch.setattr(passes_mod, "template_to_query_candidates", spy)
     for first in (8, 0):
         tested.clear()
         est = PoseEstimator(
@@ -250,9 +252,10 @@ def test_warm_up_builds_every_library_index_before_the_first_frame(cracker_model
 
     libs = {cracker_model.name: cracker_library}
     est = PoseEstimator(EstimatorConfig(), libs, models={cracker_model.name: cracker_model}, renderer=Spy())
-    assert est._lib_index == {}
+    built = est.objects._lib_index  # the estimator's library indices, filled as they are built
+    assert built == {}
     est.warm_up()
-    assert list(est._lib_index) == [cracker_model.name] and est._lib_index[cracker_model.name] is not None
+    assert list(built) == [cracker_model.name] and built[cracker_model.name] is not None
     assert renders == [cracker_model.content_hash]
 
 
@@ -260,7 +263,8 @@ def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_l
     """The view vote and the locator ask the library for the same nearest descriptors: given the one
     query's result they vote and locate exactly as when each queries itself (also under an ROI mask), and
     the estimator queries each keypoint set of an image once."""
-    import batchpose.method.estimator as est_mod  # noqa: PLC0415
+    import batchpose.method.passes as passes_mod  # noqa: PLC0415
+    import batchpose.method.shot as shot_mod  # noqa: PLC0415
     from batchpose.method.correspondences import flann_index, locate, nearest_with_rival, vote_views  # noqa: PLC0415
     from batchpose.method.features import detect_shapes  # noqa: PLC0415
 
@@ -292,8 +296,8 @@ def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_l
         located.append(id(desc_q))
         return locate(xy_q, shapes_q, desc_q, *a, **k)
 
-    monkeypatch.setattr(est_mod, "nearest_with_rival", spy)
-    monkeypatch.setattr(est_mod, "locate", spy_locate)
+    monkeypatch.setattr(shot_mod, "nearest_with_rival", spy)
+    monkeypatch.setattr(passes_mod, "locate", spy_locate)
     # Never strong, always weak: the fine pass and the locator run.
     weak = dataclasses.replace(conf, strong_inliers=0, fine=dataclasses.replace(conf.fine, locate_below=1.0))
     est = PoseEstimator(

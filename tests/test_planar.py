@@ -9,10 +9,12 @@ import pytest
 from batchpose.config import EstimatorConfig, load_estimator_config
 from batchpose.core.frames import Camera
 from batchpose.errors import ConfigError
-from batchpose.method.estimator import PoseEstimator, _LazyLab
+from batchpose.method.estimator import PoseEstimator
 from batchpose.method.features import to_gray
 from batchpose.method.gnc_pnp import PnpResult, planar_alternative, reprojection_errors
+from batchpose.method.hypotheses import planar_mirror
 from batchpose.method.render import get_renderer
+from batchpose.method.shot import LazyLab
 from batchpose.method.views import look_at
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import compose
@@ -36,11 +38,10 @@ def face_view(model, distance_m: float) -> tuple[np.ndarray, np.ndarray, np.ndar
     return T, X, x
 
 
-def looking_at(img: np.ndarray, model, library) -> PoseEstimator:
-    """A default estimator (with a renderer) whose frame checks look at ``img``, as in ``estimate_image``."""
+def looking_at(img: np.ndarray, model, library) -> tuple[PoseEstimator, LazyLab]:
+    """A default estimator (with a renderer) and ``img`` as its frame checks look at it, as in ``estimate_image``."""
     est = PoseEstimator(EstimatorConfig(), {model.name: library}, models={model.name: model}, renderer=get_renderer())
-    est._lab = _LazyLab(img, to_gray(img))
-    return est
+    return est, LazyLab(img, to_gray(img))
 
 
 def as_result(T: np.ndarray, X: np.ndarray, x: np.ndarray) -> PnpResult:
@@ -71,10 +72,10 @@ def test_the_pose_whose_render_the_frame_shows_is_kept(cracker_model, cracker_li
     T, X, x = face_view(cracker_model, 2.0)
     img = compose(np.random.default_rng(5), cracker_model, T)
     T_alt, _ = planar_alternative(x, X, T, K_SYN, NO_DIST, 0.05)
-    est = looking_at(img, cracker_model, cracker_library)
+    est, lab = looking_at(img, cracker_model, cracker_library)
     timings: dict[str, float] = {}
     res = as_result(T_alt if start == "mirrored" else T, X, x)
-    out = est._planar_mirror(cracker_model.name, res, x, X, Camera(K_SYN, 640, 480), timings)
+    out = planar_mirror(est.objects, lab, cracker_model.name, res, x, X, Camera(K_SYN, 640, 480), timings)
     if start == "true":
         assert out is None
     else:

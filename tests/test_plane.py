@@ -16,8 +16,11 @@ from batchpose.core.frames import Camera, Frame
 from batchpose.core.poses import PoseRecord
 from batchpose.io.mesh import load_mesh
 from batchpose.method.estimator import PoseEstimator
+from batchpose.method.on_plane import use_plane
 from batchpose.method.plane import resting_faces, stable_faces, support_plane
 from batchpose.method.render import get_renderer
+from batchpose.method.sequence import Sequence
+from batchpose.method.verify import verify_weak
 from batchpose.method.views import look_at
 from tests.conftest import GELATIN, K_SYN
 
@@ -128,11 +131,11 @@ def _plane_search(cracker_model, cracker_library, with_cracker: bool, frames: in
     frame, img, models, found, T = _scene(cracker_model, with_cracker)
     conf = load_estimator_config({"track": {"enabled": False}} | conf)
     est = PoseEstimator(conf, {cracker_model.name: cracker_library}, models=models, renderer=get_renderer())
-    recs = []
+    recs, seq = [], Sequence()
     for im_id in range(frames):  # a 30 Hz sequence of the same image
         frame = dataclasses.replace(frame, im_id=im_id, stamp_ns=im_id * 33_000_000)
         recs.append(PoseRecord("table", cracker_model.name, "too_few_matches"))
-        est._use_plane(frame, img, [*found, recs[-1]])
+        use_plane(est.objects, frame, img, [*found, recs[-1]], seq)
     return (recs[0] if frames == 1 else recs), T
 
 
@@ -180,7 +183,7 @@ def test_a_weak_sift_pose_is_replaced_only_by_a_placement_that_fits_better(
         renderer=get_renderer(),
     )
     rec = PoseRecord("table", cracker_model.name, "ok", cam_from_model=weak, confidence=0.35)
-    est._use_plane(frame, img, [*found, rec])
+    use_plane(est.objects, frame, img, [*found, rec], Sequence())
     assert rec.ok and rec.reason.startswith("found by the plane search (a weak SIFT pose)") == replaced
     assert (rec.cam_from_model is weak) != replaced and rec.timings["plane"] > 0
 
@@ -240,12 +243,12 @@ def test_edges_stand_in_for_one_failed_colour_check(cracker_model, cracker_libra
 
 def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracker_library, monkeypatch, caplog):
     """An unexpected error in the optional stage is a warning; the records stay as the estimate made them."""
-    import batchpose.method.estimator
+    import batchpose.method.on_plane
 
     def boom(*a, **k):
         raise RuntimeError("boom")
 
-    monkeypatch.setattr(batchpose.method.estimator, "support_plane", boom)
+    monkeypatch.setattr(batchpose.method.on_plane, "support_plane", boom)
     frame, *_ = _scene(cracker_model, True)
     recs = []
     for enabled in (True, False):
@@ -270,7 +273,7 @@ def test_a_weak_pose_must_look_like_the_frame(cracker_model, cracker_library, of
     est = PoseEstimator(load_estimator_config({}), {cracker_model.name: cracker_library}, models=models,
                         renderer=get_renderer())  # fmt: skip
     rec = PoseRecord("table", cracker_model.name, "ok", cam_from_model=pose, confidence=0.35)
-    est._verify_weak(frame, img, [*found, rec])
+    verify_weak(est.objects, frame, img, [*found, rec], {})
     assert rec.ok == kept
     if not kept:
         assert rec.status == "low_confidence" and rec.reason.startswith(
@@ -293,9 +296,9 @@ def test_a_retry_pose_the_texture_check_rejects_gives_back_the_pose_it_replaced(
     first = PoseRecord("table", cracker_model.name, "ok", cam_from_model=replaced, confidence=0.35)
     retry = PoseRecord("table", cracker_model.name, "ok", "found with keypoints at contrast 0.01",
                        cam_from_model=wrong, confidence=0.45, timings={"match": 1.0})  # fmt: skip
-    est._replaced[id(retry)] = (retry, first)  # as _retry_once records a replacement
+    replaced = {id(retry): (retry, first)}  # as the retry records a replacement
     records = [*found, retry]
-    est._verify_weak(frame, img, records)
+    verify_weak(est.objects, frame, img, records, replaced)
     rejected = "weak pose (confidence 0.45 < verify_below 0.5) whose mesh does not look like the frame there"
     if replaced_off_m == 0.0:
         assert records[-1] is first and first.ok and first.timings["match"] == 1.0
@@ -320,7 +323,7 @@ def test_a_weak_pose_the_frame_barely_shows_is_not_kept(cracker_model, cracker_l
     weak = PoseRecord("table", cracker_model.name, "ok", cam_from_model=pose, confidence=0.35)
     sure = PoseRecord("table", cracker_model.name, "ok", cam_from_model=pose, confidence=0.6)
     for rec in (weak, sure):
-        est._verify_weak(frame, img, [*found, rec])
+        verify_weak(est.objects, frame, img, [*found, rec], {})
     assert sure.ok and weak.status == "low_confidence"
     assert re.fullmatch(
         r"weak pose \(confidence 0\.35 < verify_below 0\.5\) that shows \d+ px of the mesh in the frame "

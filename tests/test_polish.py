@@ -12,6 +12,7 @@ from batchpose.core.frames import Camera
 from batchpose.errors import ConfigError
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.features import to_gray
+from batchpose.method.hypotheses import polish
 from batchpose.method.render import get_renderer
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import add_error, compose, random_pose, textured_background
@@ -36,7 +37,7 @@ def test_polish_pulls_a_nearly_right_pose_onto_the_frame(cracker_model, cracker_
     gray = to_gray(compose(rng, cracker_model, T))  # lit mesh, textured background, sensor noise
     start = _nudged(T, depth_frac=0.01, rot_deg=0.4, lateral_m=0.001)  # ~1 cm off, as a SIFT pose can be
     est = _estimator(cracker_model, cracker_library, polish=True)
-    polished = est._polish(cracker_model.name, gray, start, Camera(K_SYN, 640, 480))
+    polished = polish(est.objects, cracker_model.name, gray, start, Camera(K_SYN, 640, 480))
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     before, after = add_error(start, T, pts), add_error(polished, T, pts)
     print(f"ADD {before * 1000:.2f} -> {after * 1000:.2f} mm")
@@ -48,7 +49,7 @@ def test_polish_leaves_the_pose_where_the_frame_does_not_show_the_mesh(cracker_m
     T = random_pose(rng, cracker_model.center_m)
     gray = to_gray(textured_background(rng))  # no cracker box in this frame
     est = _estimator(cracker_model, cracker_library, polish=True)
-    out = est._polish(cracker_model.name, gray, T, Camera(K_SYN, 640, 480))
+    out = polish(est.objects, cracker_model.name, gray, T, Camera(K_SYN, 640, 480))
     np.testing.assert_array_equal(out, T)
 
 
@@ -69,6 +70,6 @@ def test_a_full_estimate_is_polished_when_asked(cracker_model, cracker_library):
     est = _estimator(cracker_model, cracker_library, polish=True)
     rec = est.estimate_image(img, cam, [name])[0]
     assert plain.ok and rec.ok and not np.allclose(rec.cam_from_model, plain.cam_from_model, atol=1e-6)
-    polished = est._polish(name, to_gray(img), plain.cam_from_model, cam)
+    polished = polish(est.objects, name, to_gray(img), plain.cam_from_model, cam)
     np.testing.assert_allclose(rec.cam_from_model, polished, atol=1e-9)
     assert (rec.n_inliers, rec.confidence) == (plain.n_inliers, plain.confidence)  # the SIFT evidence, as before

@@ -15,7 +15,9 @@ from batchpose.core.poses import PoseRecord
 from batchpose.errors import ConfigError
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.render import get_renderer
+from batchpose.method.sequence import Sequence
 from batchpose.method.track import TrackResult, view_turn_deg
+from batchpose.method.tracked import refresh, seed_track
 from batchpose.method.views import look_at
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import add_error, textured_background
@@ -72,8 +74,8 @@ def make_estimator(model, library, **track) -> PoseEstimator:
 
 
 def run_clip(est: PoseEstimator, frames: list[Frame], name: str):
-    est.reset_tracks()
-    return [est.estimate_frame(f, [name])[0] for f in frames]
+    seq = Sequence()
+    return [est.estimate_frame(f, [name], seq)[0] for f in frames]
 
 
 def test_tracked_poses_follow_the_object(cracker_model, cracker_library, clip):
@@ -115,15 +117,17 @@ def test_refresh_keeps_a_true_track_and_ends_a_drifted_one(cracker_model, cracke
     gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
     from batchpose.core.poses import PoseRecord
 
-    start = est._seed(cracker_model.name, gray, PoseRecord("", cracker_model.name, "ok", cam_from_model=T), cam)
+    start = seed_track(
+        est.objects, cracker_model.name, gray, PoseRecord("", cracker_model.name, "ok", cam_from_model=T), cam
+    )
     start.age = 32
-    kept = est._refresh(cracker_model.name, gray, TrackResult(start, len(start.xy), 0.1), cam)
+    kept = refresh(est.objects, cracker_model.name, gray, TrackResult(start, len(start.xy), 0.1), cam)
     assert kept is not None and kept.track.age == 0 and len(kept.track.xy) >= 50
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     assert add_error(kept.track.cam_from_model, T, pts) < 0.001
     drifted = dataclasses.replace(start, cam_from_model=T.copy())
     drifted.cam_from_model[0, 3] += 0.02
-    assert est._refresh(cracker_model.name, gray, TrackResult(drifted, len(start.xy), 0.1), cam) is None
+    assert refresh(est.objects, cracker_model.name, gray, TrackResult(drifted, len(start.xy), 0.1), cam) is None
 
 
 @pytest.mark.parametrize(
@@ -210,13 +214,15 @@ def test_a_pose_the_frame_does_not_look_like_starts_no_track(cracker_model, crac
     for min_match, pose, expect in ((0.35, T, True), (0.35, turned, False), (0.0, turned, True)):
         est = make_estimator(cracker_model, cracker_library, min_match=min_match)
         rec = PoseRecord("", name, "ok", cam_from_model=pose, confidence=0.9)
-        track = est._seed(name, gray, rec, cam, (), lab)
+        track = seed_track(est.objects, name, gray, rec, cam, (), lab)
         assert (track is not None) == expect, (min_match, expect)
     est = make_estimator(cracker_model, cracker_library)
-    start = est._seed(name, gray, PoseRecord("", name, "ok", cam_from_model=T, confidence=0.9), cam, (), lab)
-    assert est._refresh(name, gray, TrackResult(start, len(start.xy), 0.1), cam, (), lab) is not None
+    start = seed_track(
+        est.objects, name, gray, PoseRecord("", name, "ok", cam_from_model=T, confidence=0.9), cam, (), lab
+    )
+    assert refresh(est.objects, name, gray, TrackResult(start, len(start.xy), 0.1), cam, (), lab) is not None
     wrong = dataclasses.replace(start, cam_from_model=turned)
-    assert est._refresh(name, gray, TrackResult(wrong, len(start.xy), 0.1), cam, (), lab) is None
+    assert refresh(est.objects, name, gray, TrackResult(wrong, len(start.xy), 0.1), cam, (), lab) is None
 
 
 def test_tracking_with_lens_distortion(cracker_model, cracker_library, clip):
@@ -263,17 +269,17 @@ def test_corners_on_an_occluder_are_not_seeded(cracker_model, cracker_library, c
         img[y0 : y0 + 90, x0 : x0 + 70] = card
         frames.append(frame_of(img, i))
     est = make_estimator(cracker_model, cracker_library, min_ncc=min_ncc)
-    est.reset_tracks()
-    first = est.estimate_frame(frames[0], [cracker_model.name])[0]
+    seq = Sequence()
+    first = est.estimate_frame(frames[0], [cracker_model.name], seq)[0]
     assert first.ok and not first.tracked
-    key = est._tracks[cracker_model.name].key_xy
+    key = seq.tracks[cracker_model.name].key_xy
     inside = (key[:, 0] >= x0 + 4) & (key[:, 0] < x0 + 66) & (key[:, 1] >= y0 + 4) & (key[:, 1] < y0 + 86)
     print(f"min_ncc {min_ncc}: {inside.sum()} of {len(key)} seeded corners inside the card")
     if min_ncc < 0:
         assert inside.sum() >= 5  # the card is textured: without the check its corners are seeded
         return
     assert len(key) >= 30 and inside.sum() <= 2
-    recs = [est.estimate_frame(f, [cracker_model.name])[0] for f in frames[1:]]
+    recs = [est.estimate_frame(f, [cracker_model.name], seq)[0] for f in frames[1:]]
     assert all(r.tracked for r in recs)
     pts = np.asarray(cracker_model.mesh.vertices)[::8]
     errors = [add_error(r.cam_from_model, T, pts) for r, (_, T) in zip(recs, clip[1:6], strict=False)]
@@ -552,7 +558,7 @@ def gelatin_library(cache_dir):
 
 @pytest.mark.parametrize(("hidden_above", "hidden_quick"), [(0.6, True), (0.6, False), (1.0, True)])
 def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
-    cracker_model, cracker_library, gelatin_library, hidden_above, hidden_quick
+    cracker_model, cracker_library, gelatin_library, hidden_above, hidden_quick, monkeypatch
 ):
     """The gelatin box (tracked) passes in front of the still cracker box, hiding up to ~95 % of it, and on.
     The cracker's track ends; while the gelatin box covers >= 60 % of it at its last pose, the frames that
@@ -575,20 +581,25 @@ def test_a_lost_object_mostly_behind_a_tracked_one_is_reported_hidden(
     conf = dataclasses.replace(EstimatorConfig(), track=track)
     unretried, hidden_and_quick = [], []
 
-    class Watched(PoseEstimator):  # records which objects the tracker spares the retry, and which are quick
-        def estimate_image(self, *args, quick=frozenset(), no_retry=frozenset(), **kwargs):
-            unretried.extend(no_retry)
-            hidden_and_quick.extend((name, name in quick) for name in no_retry)
-            return super().estimate_image(*args, quick=quick, no_retry=no_retry, **kwargs)
+    from batchpose.method import tracked
 
-    est = Watched(
+    fresh_estimate = tracked.estimate_image
+
+    def watched(*args, quick=frozenset(), no_retry=frozenset(), **kwargs):
+        """Records which objects the tracker spares the retry, and which are quick."""
+        unretried.extend(no_retry)
+        hidden_and_quick.extend((name, name in quick) for name in no_retry)
+        return fresh_estimate(*args, quick=quick, no_retry=no_retry, **kwargs)
+
+    monkeypatch.setattr(tracked, "estimate_image", watched)
+    est = PoseEstimator(
         conf,
         {cracker_model.name: cracker_library, gelatin.name: gel_lib},
         models={cracker_model.name: cracker_model, gelatin.name: gelatin},
         renderer=renderer,
     )
-    est.reset_tracks()
-    recs = [est.estimate_frame(f, [cracker_model.name, gelatin.name]) for f in frames]
+    seq = Sequence()
+    recs = [est.estimate_frame(f, [cracker_model.name, gelatin.name], seq) for f in frames]
     box = [r[0] for r in recs]
     assert all(r[1].ok for r in recs) and all(r[1].tracked for r in recs[1:])
     pts = np.asarray(cracker_model.mesh.vertices)[::8]

@@ -11,8 +11,8 @@ by Levenberg-Marquardt from the previous pose, trimming points whose reprojectio
 (:func:`anchor_to_render`) the points are found again by NCC against the mesh rendered at the tracked pose,
 which removes drift altogether. A track ends (the next frame is estimated afresh) when fewer than
 ``min_fraction`` of its seeded points survive, at a scene change or a gap in time. Pure computation: the
-caller (:class:`batchpose.method.estimator.PoseEstimator`) keeps one :class:`Track` per object and decides when
-tracks start, end and are refreshed.
+caller (:func:`batchpose.method.tracked.estimate_tracked`) keeps one :class:`Track` per object in the
+:class:`~batchpose.method.sequence.Sequence` and decides when tracks start, end and are refreshed.
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ from batchpose.io import library
 from batchpose.io.files import write_parquet_atomic
 from batchpose.io.mesh import load_mesh
 from batchpose.method.estimator import PoseEstimator
+from batchpose.method.sequence import Sequence
 from batchpose.stages.workers import loky_options
 
 log = logging.getLogger("batchpose")
@@ -109,10 +110,10 @@ def estimate_chunk(
     _relax_loky_leak_check()
     limit_threads(threads)
     est = _estimator(conf_dict, lib_dirs, obj_ids, mesh_paths, mesh_cache)
-    est.reset_tracks()  # a track never crosses tasks: results do not depend on how tasks meet workers
+    seq = Sequence()  # a track never crosses tasks: results do not depend on how tasks meet workers
     rows = []
     for frame, names in zip(frames, targets, strict=False):
-        rows.extend(r.to_row() for r in est.estimate_frame(frame, names))
+        rows.extend(r.to_row() for r in est.estimate_frame(frame, names, seq))
     return rows
 
 

@@ -1,0 +1,99 @@
+"""One image under estimation (:class:`Shot`) and a keypoint set of it (:class:`Keypoints`).
+
+A shot is made per image and dropped after it: what the estimates of its objects share — the gray image,
+the Lab image the checks compare renders with (made on first use), the library queries of its keypoint
+sets, and the retries' replaced records the weak-pose check may give back.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from batchpose.core.frames import Camera
+from batchpose.errors import ImageError
+from batchpose.method.correspondences import flann_index, nearest_with_rival
+from batchpose.method.objects import Objects
+from batchpose.method.records import Replaced
+
+
+def check_image(rgb: np.ndarray, where: str = "image") -> None:
+    """Raise ImageError for an empty image or one with no contrast at all (e.g. all black)."""
+    if rgb is None or rgb.size == 0 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        shape = None if rgb is None else rgb.shape
+        raise ImageError(f"{where}: expected an (H, W, 3) RGB image, got shape {shape}")
+    if int(rgb.max()) == int(rgb.min()):
+        raise ImageError(f"{where}: image is blank (every pixel is {int(rgb.max())})")
+
+
+class LazyLab:
+    """An RGB image's Lab conversion, made on first use, and its gray image."""
+
+    def __init__(self, rgb: np.ndarray, gray: np.ndarray) -> None:
+        self._rgb, self.gray = rgb, gray
+        self._lab: np.ndarray | None = None
+
+    def get(self) -> np.ndarray:
+        if self._lab is None:
+            self._lab = cv2.cvtColor(self._rgb, cv2.COLOR_RGB2LAB)
+        return self._lab
+
+
+@dataclass
+class Keypoints:
+    """A keypoint set of the image (the whole frame's, a retry's or a fine pass's crop).
+
+    Attributes:
+        xy: (N, 2) float32 pixels; desc: (N, 128) float32 descriptors.
+        shapes: (N, 2) each keypoint's size and angle (None: not kept, e.g. a fine pass's).
+        index: FLANN index over ``desc`` for ``match.direction: template_to_query`` (else None).
+    """
+
+    xy: np.ndarray
+    desc: np.ndarray
+    shapes: np.ndarray | None = None
+    index: object = None
+
+
+def query_index(desc: np.ndarray, objects: Objects):
+    """The FLANN index over a keypoint set's descriptors that ``template_to_query`` matching searches."""
+    return flann_index(desc, objects.conf.match) if objects.conf.match.direction == "template_to_query" else None
+
+
+@dataclass
+class Shot:
+    """One image being estimated, and what its objects' estimates share.
+
+    Attributes:
+        gray: (H, W) uint8; camera: its calibration; frame_id: for records and messages.
+        gt: obj_name -> (4, 4) ground-truth pose (only the ``gt_box`` oracle and ``tp_ub`` use it).
+        lab: the image in Lab for the alternatives and planar checks (None when both are off).
+        nearest: obj_name -> [(descriptors, :func:`nearest_with_rival` of them)]: each keypoint set's library
+            query, asked once by the view vote and the locator.
+        replaced: the retries' replacements (:data:`batchpose.method.records.Replaced`).
+    """
+
+    gray: np.ndarray
+    camera: Camera
+    frame_id: str
+    gt: dict[str, np.ndarray]
+    lab: LazyLab | None
+    nearest: dict[str, list[tuple[np.ndarray, tuple]]] = field(default_factory=dict)
+    replaced: Replaced = field(default_factory=dict)
+
+
+def nearest_templates(objects: Objects, shot: Shot, name: str, desc_q: np.ndarray) -> tuple | None:
+    """:func:`nearest_with_rival` of ``desc_q`` into the object's library, computed once per keypoint set
+    of the image (the view vote and the locator ask for the same; each query is independent, so the
+    result is the same). None without keypoints or library."""
+    if len(desc_q) == 0 or objects.library_index(name) is None:
+        return None
+    seen = shot.nearest.setdefault(name, [])
+    for desc, found in seen:
+        if desc is desc_q:
+            return found
+    found = nearest_with_rival(desc_q, objects.library_index(name), objects.libraries[name], objects.conf.match)
+    seen.append((desc_q, found))  # holding the array: its identity cannot pass to another one
+    return found
