@@ -59,3 +59,6 @@ test: setup
 
 lint: setup
 	$(VENV)/bin/ruff check batchpose tests benchmarks
+	$(VENV)/bin/ruff format --check batchpose tests benchmarks
+	$(VENV)/bin/mypy
+	$(VENV)/bin/lint-imports

@@ -22,7 +22,7 @@ log = logging.getLogger("batchpose")
 
 
 def _cmd_convert(args: argparse.Namespace) -> None:
-    from batchpose.stages import convert
+    from batchpose import convert
 
     out = convert.main(Path(args.src), Path(args.out), fmt=args.format, overwrite=args.overwrite)
     print(f"wrote {out}")
@@ -48,7 +48,7 @@ def _cmd_run(args: argparse.Namespace) -> None:
 def _cmd_report(args: argparse.Namespace) -> None:
     from batchpose.stages import report as report_stage
 
-    out = report_stage.main(Path(args.run_dir), overwrite=True)
+    out = report_stage.main(None, None, Path(args.run_dir), overwrite=True)
     print(f"report: {out}")
 
 
@@ -156,7 +156,7 @@ class _Version(argparse.Action):
 
     def __call__(self, parser, namespace, values, option_string=None) -> None:
         from batchpose import __version__  # noqa: PLC0415
-        from batchpose.run import versions  # noqa: PLC0415
+        from batchpose.run_dir import versions  # noqa: PLC0415
 
         libs = ", ".join(f"{k} {v}" for k, v in versions().items() if k not in ("batchpose", "platform") and v)
         print(f"batchpose {__version__} ({libs})")

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import psutil
 
-from batchpose import run as run_mod
+from batchpose.run_dir import versions
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -47,7 +47,7 @@ def machine() -> str:
                 cpu = line.split(":", 1)[1].strip()
                 break
     load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    found = run_mod.versions()
+    found = versions()
     libs = ", ".join(f"{name} {found.get(pkg) or '-'}" for pkg, name in _LIBS.items())
     return (
         f"{_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} | {cpu} | {psutil.cpu_count()} logical cores | "

@@ -214,7 +214,7 @@ def warm_cache(manifest: str, pipeline: str, overrides: list[str], cache: str) -
     t0 = time.perf_counter()
     for spec in man.objects:
         model = load_mesh(spec.mesh, conf.mesh, name=spec.name)
-        build_templates.main(model, conf, first.camera.K, first.camera.width, first.camera.height, Path(cache))
+        build_templates.build_library(model, conf, first.camera.K, first.camera.width, first.camera.height, Path(cache))
     return time.perf_counter() - t0
 
 

@@ -179,7 +179,7 @@ def warm_cache(manifest: str, pipeline: str, cache: str) -> float:
     man = load_manifest(Path(manifest))
     t0 = time.perf_counter()
     for spec in man.objects:
-        build_templates.main(load_mesh(spec.mesh, conf.mesh, name=spec.name), conf, K, W, H, Path(cache))
+        build_templates.build_library(load_mesh(spec.mesh, conf.mesh, name=spec.name), conf, K, W, H, Path(cache))
     return time.perf_counter() - t0
 
 

@@ -1,6 +1,6 @@
 """Template library: cold build time per object (renders, SIFT) and a cached load (0 renders).
 
-For each object of the manifest, in a fresh cache folder: ``build_templates.main`` cold, with every
+For each object of the manifest, in a fresh cache folder: ``build_templates.build_library`` cold, with every
 ``Renderer.render`` call and every template ``detect_shapes`` (SIFT) call counted and timed; then the same call
 again (must find the cache: 0 renders) and ``library.load`` (what each worker does at start-up),
 with the mesh read from the cache folder (``load_mesh(cache_dir=)``) and the library's FLANN index built
@@ -103,7 +103,7 @@ def main() -> int:
                     tm.wrap(templates, "detect_shapes", "sift")
                     tm.wrap(build_templates, "save", "save")
                     t0 = time.perf_counter()
-                    lib_dir = build_templates.main(
+                    lib_dir = build_templates.build_library(
                         model, conf, first.camera.K, first.camera.width, first.camera.height, cache
                     )
                     t_cold = time.perf_counter() - t0
@@ -132,7 +132,7 @@ def main() -> int:
                     model = load_mesh(spec.mesh, conf.mesh, name=spec.name, cache_dir=cache)  # hash + cached mesh
                     t_mesh = time.perf_counter() - t0
                     t0 = time.perf_counter()
-                    again = build_templates.main(
+                    again = build_templates.build_library(
                         model, conf, first.camera.K, first.camera.width, first.camera.height, cache
                     )
                     t_find = time.perf_counter() - t0
@@ -186,7 +186,7 @@ def main() -> int:
                 "object",
                 "renders",
                 "mesh (cached) ms",
-                "find ms (build_templates.main)",
+                "find ms (build_templates.build_library)",
                 "load ms (library.load)",
                 "total s",
                 "index: build ms",

@@ -36,5 +36,44 @@ def cracker_library(cracker_model, cache_dir):
     from batchpose.io import library
     from batchpose.stages import build_templates
 
-    lib_dir = build_templates.main(cracker_model, EstimatorConfig(), K_SYN, 640, 480, cache_dir)
+    lib_dir = build_templates.build_library(cracker_model, EstimatorConfig(), K_SYN, 640, 480, cache_dir)
     return library.load(lib_dir)
+
+
+class RunStopped(Exception):
+    """Raised by :func:`stop_run` where a killed run would have stopped."""
+
+
+@pytest.fixture()
+def stop_run():
+    """``stop_run(after=N)``: the next in-process run (``--jobs 1``) stops, as a kill would, right after the
+    estimate stage has saved its N-th chunk; ``stop_run(after=N, at="save")`` right after its N-th checkpoint
+    inside a chunk (checkpoints then after every frame); the run raises ``stop_run.Stopped``.
+    ``stop_run.disarm()`` lets the next run finish."""
+    mp = pytest.MonkeyPatch()
+
+    class Arm:
+        #: What a stopped run raises (use this attribute: conftest may be imported under two module names).
+        Stopped = RunStopped
+
+        def __call__(self, after: int, at: str = "finish") -> None:
+            from batchpose.stages import checkpoints
+
+            original = getattr(checkpoints.ChunkFiles, at)
+            calls = []
+
+            def stopping(files, *args, **kwargs):
+                original(files, *args, **kwargs)
+                calls.append(files.chunk_id)
+                if len(calls) >= after:
+                    raise RunStopped(f"stopped after {at} #{len(calls)} ({files.chunk_id})")
+
+            mp.setattr(checkpoints.ChunkFiles, at, stopping)
+            if at == "save":
+                mp.setattr(checkpoints, "CHECKPOINT_S", 0.0)
+
+        def disarm(self) -> None:
+            mp.undo()
+
+    yield Arm()
+    mp.undo()

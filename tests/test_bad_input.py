@@ -112,7 +112,7 @@ def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
     from batchpose import cli
     from batchpose.stages import report as report_stage
 
-    def full(run_dir, overwrite=False):
+    def full(*args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(report_stage, "main", full)
@@ -122,7 +122,7 @@ def test_a_full_disk_names_the_output_folders(tmp_path, monkeypatch, capsys):
     assert err[0].startswith(f"batchpose: error: no space left on device: run dir {tmp_path / 'run'} (")
     assert err[0].endswith("MB free now). Free some space and rerun the same command: finished work is kept")
 
-    from batchpose.stages import convert
+    from batchpose import convert
 
     monkeypatch.setattr(convert, "main", lambda src, out, fmt, overwrite=False: full(out))
     out = tmp_path / "log.mcap"

@@ -13,10 +13,10 @@ import pytest
 import scipy.io
 import yaml
 
+from batchpose import convert
 from batchpose.core.frames import decode_image
 from batchpose.io.mcap_read import McapFrameSource
 from batchpose.io.sources import open_frames
-from batchpose.stages import convert
 
 K = np.array([[500.0, 0.0, 15.5], [0.0, 510.0, 11.5], [0.0, 0.0, 1.0]])
 

@@ -219,7 +219,7 @@ def _decodes(b64: str) -> np.ndarray:
 @pytest.fixture(scope="module")
 def report(tmp_path_factory) -> Path:
     run = make_run(tmp_path_factory.mktemp("report"))
-    return report_stage.main(run)
+    return report_stage.main(None, None, run)
 
 
 def test_summary_csv(report):
@@ -292,7 +292,7 @@ def test_overlay_draws_at_projected_pose():
 
 def test_report_without_ground_truth(tmp_path):
     run = make_run(tmp_path, with_gt=False)
-    out = report_stage.main(run)
+    out = report_stage.main(None, None, run)
     s = pd.read_csv(out / "summary.csv").set_index("obj_name")
     # obj_a: 3 ok of 4 rows; obj_b: 3 of 3 (its missing frame has no row); all: 6 / 7.
     assert s.loc["obj_a", "detection_rate_pct"] == pytest.approx(75.0)
@@ -310,7 +310,7 @@ def test_report_without_ground_truth(tmp_path):
 
 def test_gallery_failure_is_explained(tmp_path):
     run = make_run(tmp_path, frames_root=tmp_path / "nowhere")
-    html = (report_stage.main(run) / "index.html").read_text()
+    html = (report_stage.main(None, None, run) / "index.html").read_text()
     note = re.search(r'<p class="warn" id="gallery-note">([^<]*)</p>', html)
     assert note, "the report must say why there is no gallery"
     assert ("does not exist" in note.group(1)) if HAVE_DATASETS else ("unavailable" in note.group(1))
@@ -320,22 +320,22 @@ def test_gallery_failure_is_explained(tmp_path):
 
 def test_rerun_skips_and_overwrite_rebuilds(tmp_path, caplog):
     run = make_run(tmp_path)
-    index = report_stage.main(run) / "index.html"
+    index = report_stage.main(None, None, run) / "index.html"
     before = index.stat().st_mtime_ns
     with caplog.at_level("INFO", logger="batchpose"):
-        report_stage.main(run)
+        report_stage.main(None, None, run)
     assert index.stat().st_mtime_ns == before and "Skipping report" in caplog.text
-    report_stage.main(run, overwrite=True)
+    report_stage.main(None, None, run, overwrite=True)
     assert index.stat().st_mtime_ns > before
     assert not list((run / "report").glob("*.tmp"))
 
 
 def test_missing_poses_is_a_data_error(tmp_path):
     with pytest.raises(DataError, match="no poses.parquet"):
-        report_stage.main(tmp_path)
+        report_stage.main(None, None, tmp_path)
     (tmp_path / "config.yaml").write_text("pipeline: {}\n")  # a run killed before its poses were merged
     with pytest.raises(DataError, match="the run is unfinished .* rerun the same `batchpose run` command"):
-        report_stage.main(tmp_path)
+        report_stage.main(None, None, tmp_path)
 
 
 def test_compare(tmp_path):
@@ -359,7 +359,7 @@ def test_compare(tmp_path):
 
 
 def _summary(run: Path) -> pd.DataFrame:
-    return pd.read_csv(report_stage.main(run) / "summary.csv").set_index("obj_name")
+    return pd.read_csv(report_stage.main(None, None, run) / "summary.csv").set_index("obj_name")
 
 
 def test_millimetre_models_score_like_metres(tmp_path, caplog):
@@ -401,21 +401,21 @@ def test_points_file_in_other_units_is_refused(tmp_path, scale):
     pts = np.loadtxt(tmp_path / "data" / "obj_a.xyz")
     np.savetxt(tmp_path / "data" / "obj_a.xyz", pts * scale, fmt="%.6f")
     with pytest.raises(DataError, match=r"obj_a\.points: .*obj_a\.xyz: the points span .* neither in metres nor"):
-        report_stage.main(run)
+        report_stage.main(None, None, run)
 
 
 def test_millimetre_models_refused_with_on_millimetres_refuse(tmp_path):
     run = make_run(tmp_path, model_scale=1000.0)
     (run / "config.yaml").write_text(yaml.safe_dump({"pipeline": {"mesh": {"on_millimetres": "refuse"}}}))
     with pytest.raises(DataError, match=r"obj_a\.xyz: .*look like millimetres; .*on_millimetres: convert"):
-        report_stage.main(run)
+        report_stage.main(None, None, run)
     objects = json.loads((run / "objects.json").read_text())
     objects["obj_a"]["points"] = None  # mesh samples instead: the mesh's own refusal, as in load_mesh
     objects["obj_a"]["mesh"] = objects["obj_b"]["mesh"]
     objects["obj_a"]["diameter_m"] = objects["obj_b"]["diameter_m"]
     (run / "objects.json").write_text(json.dumps(objects))
     with pytest.raises(MeshError, match=r"obj_b\.ply: .*looks like millimetres; .*on_millimetres: convert"):
-        report_stage.main(run)
+        report_stage.main(None, None, run)
 
 
 def _scaled_obj(src: Path, dst_dir: Path, scale: float) -> Path:
@@ -572,7 +572,7 @@ def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
 
 def test_timeline_section_in_both_reports(report, tmp_path):
     assert "plot-timeline" in _imgs((report / "index.html").read_text())
-    out = report_stage.main(make_run(tmp_path, with_gt=False))
+    out = report_stage.main(None, None, make_run(tmp_path, with_gt=False))
     html = (out / "index.html").read_text()
     assert 'id="timeline"' in html and "confidence of the ok poses" in html
     assert _decodes(_imgs(html)["plot-timeline"]).shape[1] >= 900

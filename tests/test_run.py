@@ -56,12 +56,15 @@ def _csv(path):
 
 
 @pytest.mark.slow
-def test_resume_computes_only_missing_pairs(demo_run, tmp_path, cache_dir):
+def test_resume_computes_only_missing_pairs(demo_run, tmp_path, cache_dir, stop_run):
     out = tmp_path / "resumed"
     # Tasks of 2 frames (not track.chunk_frames' 32) so that the first run stops part-way; the demo's frames
     # are not consecutive, so no pose is tracked and the task size cannot change a result.
     small = ["track.chunk_frames=2"]
-    run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, overrides=small, jobs=1, max_pairs=2, report=False)
+    stop_run(after=1)
+    with pytest.raises(stop_run.Stopped):
+        run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, overrides=small, jobs=1, report=False)
+    stop_run.disarm()
     shards = pd.concat(pd.read_parquet(p) for p in sorted((out / "shards").glob("shard-*.parquet")))
     assert len(shards) == 2 and not (out / "poses.csv").exists()
     n_before = len(list((out / "shards").glob("shard-*.parquet")))
@@ -272,7 +275,7 @@ def test_workers_share_the_cores_instead_of_each_taking_all():
     # Two workers on N cores get N // 2 OpenCV and renderer threads each; one worker keeps the defaults.
     code = (
         "import os, cv2\n"
-        "from batchpose.stages import estimate as e\n"
+        "from batchpose.stages import workers as e\n"
         "cores = len(os.sched_getaffinity(0))\n"
         "assert e.threads_per_worker(1) is None\n"
         "assert e.threads_per_worker(2) == max(1, cores // 2), e.threads_per_worker(2)\n"
@@ -415,7 +418,7 @@ def test_a_second_run_on_the_same_out_stops_at_once(tmp_path):
 
 
 @pytest.mark.slow
-def test_stale_or_broken_results_are_never_trusted(demo_run, tmp_path, cache_dir):
+def test_stale_or_broken_results_are_never_trusted(demo_run, tmp_path, cache_dir, stop_run):
     """A broken shard is dropped and its pairs estimated again; a changed frame or mesh is refused; an
     interrupted --overwrite leaves none of the old run's results to be taken for the new one's."""
     import shutil
@@ -444,7 +447,9 @@ def test_stale_or_broken_results_are_never_trusted(demo_run, tmp_path, cache_dir
         f.write("# edited\n")
     _one_line_exit_2(_cli(*args), "another version of the mesh of 009_gelatin_box")
 
-    run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1, overwrite=True, max_pairs=1)  # killed early
+    stop_run(after=1)
+    with pytest.raises(stop_run.Stopped):  # killed early
+        run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1, overwrite=True)
     assert len(list((out / "shards").glob("shard-*.parquet"))) == 1 and not (out / "poses.parquet").exists()
 
 

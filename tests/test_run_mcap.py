@@ -17,8 +17,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from batchpose import run
-from batchpose.stages import convert
+from batchpose import convert, run
 from tests.conftest import ROOT
 from tests.test_mcap_io import (
     T0,

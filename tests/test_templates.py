@@ -38,17 +38,17 @@ def test_library_points_lie_on_the_mesh(cracker_model, cracker_library):
 def test_second_build_loads_and_renders_nothing(cracker_model, tmp_path):
     conf = EstimatorConfig(render=RenderConfig(n_views=12, image_fractions=(0.5,)))
     r1 = CountingRenderer()
-    d1 = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r1)
+    d1 = build_templates.build_library(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r1)
     assert r1.calls == 12
     assert {p.name for p in d1.iterdir()} == {"views.parquet", "templates.npz", "voxels.npz"}
     r2 = CountingRenderer()
-    d2 = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r2)
+    d2 = build_templates.build_library(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r2)
     assert d2 == d1 and r2.calls == 0
     lib = library.load(d2)
     assert lib.n_views == 12 and lib.views["n_keypoints"].sum() == len(lib.desc)
     # A different render config is a different library.
     conf2 = EstimatorConfig(render=RenderConfig(n_views=13, image_fractions=(0.5,)))
-    d3 = build_templates.main(cracker_model, conf2, K_SYN, 640, 480, tmp_path, renderer=CountingRenderer())
+    d3 = build_templates.build_library(cracker_model, conf2, K_SYN, 640, 480, tmp_path, renderer=CountingRenderer())
     assert d3 != d1
 
 
@@ -56,12 +56,12 @@ def test_a_damaged_or_half_saved_library_is_built_again(cracker_model, tmp_path)
     """A cached library whose file is truncated is rendered again, not trusted; the half-saved copy a killed
     process left (NAME.tmp-PID, PID gone) is removed when the library is saved next."""
     conf = EstimatorConfig(render=RenderConfig(n_views=6, image_fractions=(0.5,)))
-    d = build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=CountingRenderer())
+    d = build_templates.build_library(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=CountingRenderer())
     (d / "templates.npz").write_bytes((d / "templates.npz").read_bytes()[:100])
     abandoned = d.with_name(d.name + ".tmp-999999999")  # no such process
     abandoned.mkdir()
     r = CountingRenderer()
-    assert build_templates.main(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r) == d
+    assert build_templates.build_library(cracker_model, conf, K_SYN, 640, 480, tmp_path, renderer=r) == d
     assert r.calls == 6 and library.load(d).n_views == 6 and not abandoned.exists()
 
 

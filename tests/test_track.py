@@ -357,9 +357,9 @@ def test_tracks_flowed_together_move_as_they_would_alone(cracker_model, clip):
 
 
 @pytest.mark.slow
-def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, clip, tmp_path, cache_dir):
+def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, clip, tmp_path, cache_dir, stop_run):
     """The whole job on a 10-frame MCAP of the clip, in tasks of 4 frames: --jobs 1, --jobs 2 and a run
-    stopped after its first task and resumed give the same poses and the same tracked flags."""
+    stopped after its first task or inside its second and resumed give the same poses and tracked flags."""
     import pandas as pd
 
     from batchpose import run
@@ -391,16 +391,23 @@ def test_tracked_run_is_the_same_with_2_jobs_and_after_a_resume(cracker_model, c
             pipeline, manifest, tmp_path / f"j{jobs}", cache_dir=cache_dir, overrides=small, jobs=jobs, report=False
         )
         runs[jobs] = poses(out)
-    resumed = tmp_path / "resumed"
-    run.main(pipeline, manifest, resumed, cache_dir=cache_dir, overrides=small, jobs=1, max_pairs=4, report=False)
-    assert len(list((resumed / "shards").glob("shard-*.parquet"))) == 1
-    run.main(pipeline, manifest, resumed, cache_dir=cache_dir, overrides=small, jobs=1, report=False)
-    runs["resumed"] = poses(resumed)
+    # Killed after the first task of 4 frames, and killed inside a task (saved after each frame: the rerun
+    # starts from the tracks saved with the third frame): both resume to the same poses.
+    for name, stop in (("resumed", {"after": 1}), ("resumed_mid_task", {"after": 6, "at": "save"})):
+        resumed = tmp_path / name
+        stop_run(**stop)
+        with pytest.raises(stop_run.Stopped):
+            run.main(pipeline, manifest, resumed, cache_dir=cache_dir, overrides=small, jobs=1, report=False)
+        stop_run.disarm()
+        assert not (resumed / "poses.parquet").exists()
+        run.main(pipeline, manifest, resumed, cache_dir=cache_dir, overrides=small, jobs=1, report=False)
+        runs[name] = poses(resumed)
+        assert not list((resumed / "shards").glob("chunk-*.state"))  # every task finished: no state left
     flags, R, t = runs[1]
     # Each task of 4 frames starts with a full estimate and tracks the rest.
     assert flags["tracked"].tolist() == [i % 4 != 0 for i in range(10)]
     assert (flags["status"] == "ok").all()
-    for other in (runs[2], runs["resumed"]):
+    for other in (runs[2], runs["resumed"], runs["resumed_mid_task"]):
         pd.testing.assert_frame_equal(other[0], flags)
         np.testing.assert_allclose(other[1], R, atol=1e-9)
         np.testing.assert_allclose(other[2], t, atol=1e-9)
@@ -553,7 +560,7 @@ def gelatin_library(cache_dir):
     from tests.conftest import GELATIN
 
     gelatin = load_mesh(GELATIN)
-    return gelatin, library.load(build_templates.main(gelatin, EstimatorConfig(), K_SYN, 640, 480, cache_dir))
+    return gelatin, library.load(build_templates.build_library(gelatin, EstimatorConfig(), K_SYN, 640, 480, cache_dir))
 
 
 @pytest.mark.parametrize(("hidden_above", "hidden_quick"), [(0.6, True), (0.6, False), (1.0, True)])

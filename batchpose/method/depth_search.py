@@ -324,11 +324,8 @@ def search(
             last[key] = render(T)
         return last[key]
 
-    def render_depth(T: np.ndarray) -> np.ndarray:
-        return rendered(T)[1]
-
     def aligned(start: np.ndarray) -> _Candidate | None:
-        fit = align_to_depth(start, depth_m, render_depth, K, surface, diameter_m, wide)
+        fit = align_to_depth(start, depth_m, lambda T: rendered(T)[1], K, surface, diameter_m, wide)
         if not fit.aligned:
             return None
         ren_rgb, ren_depth = rendered(fit.cam_from_model)

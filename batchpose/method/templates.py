@@ -116,6 +116,10 @@ def _view_keypoints(rgb, depth, K, T, pad: int, feature_conf: FeatureConfig, sif
     return xy[keep], desc[keep], shapes[keep], pts
 
 
+def _concatenated(parts: list[np.ndarray], shape: tuple[int, ...], dt) -> np.ndarray:
+    return np.concatenate(parts).astype(dt) if parts else np.zeros(shape, dt)
+
+
 def render_templates(
     model: ObjectModel,
     K: np.ndarray,
@@ -182,9 +186,7 @@ def render_templates(
         if progress is not None:
             progress(1)
 
-    def cat(parts, shape, dt):
-        return np.concatenate(parts).astype(dt) if parts else np.zeros(shape, dt)
-
+    cat = _concatenated
     return TemplateLibrary(
         obj_name=model.name,
         key=key,

@@ -7,9 +7,11 @@ same key loads and renders nothing. Entries are written to a temporary folder an
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +19,7 @@ from tqdm import tqdm
 
 from batchpose.config import EstimatorConfig
 from batchpose.core.model import ObjectModel
+from batchpose.io.files import write_text_atomic
 from batchpose.io.library import (
     is_cached,
     library_dir,
@@ -41,7 +44,7 @@ def template_camera(conf: EstimatorConfig, K: np.ndarray, width: int, height: in
     return K, w, h
 
 
-def main(
+def build_library(
     model: ObjectModel,
     conf: EstimatorConfig,
     K: np.ndarray,
@@ -85,7 +88,7 @@ def _build_in_worker(mesh_path: str, name: str, conf: EstimatorConfig, K, width,
     from batchpose.io.mesh import load_mesh  # noqa: PLC0415
 
     model = load_mesh(Path(mesh_path), conf.mesh, name=name, cache_dir=cache_dir)
-    return main(model, conf, K, width, height, cache_dir)
+    return build_library(model, conf, K, width, height, cache_dir)
 
 
 def build_all(
@@ -123,5 +126,56 @@ def build_all(
         out.update(zip(todo, dirs, strict=True))
     else:
         for n in todo:
-            out[n] = main(models[n], conf, K, width, height, cache_dir)
+            out[n] = build_library(models[n], conf, K, width, height, cache_dir)
     return {n: out[n] for n in models}
+
+
+@dataclass(frozen=True)
+class TemplateInputs:
+    """What the template stage reads besides the config.
+
+    Attributes:
+        models: object name -> loaded mesh, in manifest order.
+        obj_ids: object name -> data set id.
+        K, width, height: the camera the frames are estimated with (the templates' camera is made from it).
+        cache_dir: the template library cache.
+        jobs: libraries built in parallel.
+        mesh_paths: object name -> the mesh file the manifest names (reported in ``objects.json``).
+        points: object name -> the model points file the manifest names (reported in ``objects.json``).
+    """
+
+    models: dict[str, ObjectModel]
+    obj_ids: dict[str, int]
+    K: np.ndarray
+    width: int
+    height: int
+    cache_dir: Path
+    jobs: int = 1
+    mesh_paths: dict[str, Path] = field(default_factory=dict)
+    points: dict[str, Path | None] = field(default_factory=dict)
+
+
+def main(conf: EstimatorConfig, inputs: TemplateInputs, run_dir: Path, overwrite: bool = False) -> Path:
+    """Build (or find in the cache) every object's template library and write ``run_dir/objects.json``
+    (each object's id, mesh, points, diameter and library folder); returns its path. ``overwrite`` does not
+    rebuild cached libraries: their key is the hash of everything that makes them."""
+    t0 = time.perf_counter()
+    m = inputs.models
+    lib_dirs = build_all(m, conf, inputs.K, inputs.width, inputs.height, inputs.cache_dir, jobs=inputs.jobs)
+    log.info("template libraries ready for %d objects in %.1f s", len(m), time.perf_counter() - t0)
+    objects = {
+        name: {
+            "obj_id": inputs.obj_ids[name],
+            "mesh": str(inputs.mesh_paths.get(name, model.path)),
+            "points": str(inputs.points[name]) if inputs.points.get(name) else None,
+            "diameter_m": model.diameter_m,
+            "library": str(lib_dirs[name]),
+        }
+        for name, model in m.items()
+    }
+    return write_text_atomic(Path(run_dir) / "objects.json", json.dumps(objects, indent=2), encoding=None)
+
+
+def library_dirs(objects_json: Path) -> dict[str, Path]:
+    """object name -> library folder, from the ``objects.json`` :func:`main` wrote."""
+    return {name: Path(o["library"]) for name, o in json.loads(Path(objects_json).read_text()).items()}

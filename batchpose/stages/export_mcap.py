@@ -3,30 +3,40 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
 
+from batchpose.config import EstimatorConfig
+from batchpose.core.frames import FrameSource
 from batchpose.core.model import ObjectModel
+from batchpose.stages import up_to_date
 
 log = logging.getLogger("batchpose")
 
 
-def main(
-    run_dir: Path,
-    poses_path: Path,
-    models: dict[str, ObjectModel],
-    frames_spec: dict,
-    source,
-    overwrite: bool = False,
-) -> Path:
-    """Write ``run_dir/poses.mcap``; skipped when it is newer than ``poses_path``. Returns its path."""
+@dataclass(frozen=True)
+class ExportInputs:
+    """What the MCAP export reads: the merged estimates, the meshes (drawn in Foxglove), the manifest's
+    ``frames:`` mapping (a log is copied with the poses added; folder frames are written as a log) and the
+    frame source."""
+
+    poses_path: Path
+    models: dict[str, ObjectModel]
+    frames_spec: dict
+    source: FrameSource
+
+
+def main(conf: EstimatorConfig | None, inputs: ExportInputs, run_dir: Path, overwrite: bool = False) -> Path:
+    """Write ``run_dir/poses.mcap``; skipped when it is newer than the estimates. Returns its path."""
     from batchpose.io.gltf import mesh_to_glb
     from batchpose.io.mcap_poses import write_poses_mcap
 
+    poses_path, models, frames_spec, source = inputs.poses_path, inputs.models, inputs.frames_spec, inputs.source
     out = Path(run_dir) / "poses.mcap"
-    if out.is_file() and not overwrite and out.stat().st_mtime >= Path(poses_path).stat().st_mtime:
-        log.info("Skipping MCAP export: %s is up to date", out)
+    fresh = out.is_file() and out.stat().st_mtime >= Path(poses_path).stat().st_mtime
+    if up_to_date("MCAP export", out, overwrite, fresh):
         return out
     poses = pd.read_parquet(poses_path)
     glbs = {name: mesh_to_glb(m.mesh) for name, m in models.items()}

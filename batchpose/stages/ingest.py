@@ -6,14 +6,18 @@ import json
 import logging
 import os
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from batchpose.config import EstimatorConfig
+from batchpose.core.frames import FrameSource
 from batchpose.errors import DataError
 from batchpose.io.files import write_parquet_atomic, write_text_atomic
+from batchpose.stages import up_to_date
 
 log = logging.getLogger("batchpose")
 
@@ -37,8 +41,19 @@ def _read_json(path: Path):
         return None
 
 
-def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, limit: int | None = None) -> Path:
-    """Write ``run_dir/frames.parquet`` and ``run_dir/gt.parquet``; returns the frames index path.
+@dataclass(frozen=True)
+class IngestInputs:
+    """What ingest reads: the frames (:func:`batchpose.io.sources.open_frames`), the objects of interest
+    (ground truth of other objects is not kept) and ``limit`` (index only the first ``limit`` frames)."""
+
+    source: FrameSource
+    objects: list[str]
+    limit: int | None = None
+
+
+def main(conf: EstimatorConfig | None, inputs: IngestInputs, run_dir: Path, overwrite: bool = False) -> Path:
+    """Write ``run_dir/frames.parquet`` and ``run_dir/gt.parquet``; returns the frames index path. The
+    estimator config does not change the index (the stage contract passes it to every stage).
 
     The data set is read again on every run and compared with the index a previous run left: unchanged,
     nothing is written; frames added or removed (or another ``--limit``), the index is rewritten and the
@@ -46,14 +61,10 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     pairs are kept in their shards); a frame whose content changed under the same id is an error, since its
     finished pairs would be stale.
 
-    Args:
-        source: a frame source (``batchpose.io.sources.open_frames``).
-        objects: object names of interest (ground truth of other objects is not kept).
-        limit: index only the first ``limit`` frames.
-
     Raises:
         DataError: a frame's name is not UTF-8 text, or a frame changed since the run that estimated it.
     """
+    source, objects, limit = inputs.source, inputs.objects, inputs.limit
     run_dir = Path(run_dir)
     out, gt_out, stamp = run_dir / "frames.parquet", run_dir / "gt.parquet", run_dir / "ingest.json"
     covers = {"limit": limit}
@@ -61,8 +72,8 @@ def main(source, objects: list[str], run_dir: Path, overwrite: bool = False, lim
     old = None if overwrite else _read_index(out, gt_out)
     if old is not None:
         _check_unchanged(old[0], frames, source)
-        if _read_json(stamp) == covers and _same(old[0], frames) and _same(old[1], gt):
-            log.info("Skipping ingest: %s is up to date (%d frames)", out, len(frames))
+        fresh = _read_json(stamp) == covers and _same(old[0], frames) and _same(old[1], gt)
+        if up_to_date("ingest", out, overwrite, fresh, f"{len(frames)} frames"):
             return out
     stamp.unlink(missing_ok=True)
     (run_dir / "poses.parquet").unlink(missing_ok=True)  # merged for another set of frames

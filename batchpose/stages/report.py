@@ -13,10 +13,12 @@ from pathlib import Path
 
 import pandas as pd
 
+from batchpose.config import EstimatorConfig
 from batchpose.io.files import write_text_atomic
 from batchpose.report import html, overlays, scoring
 from batchpose.report.compare import compare_runs
 from batchpose.report.runs import load_run
+from batchpose.stages import up_to_date
 
 log = logging.getLogger("batchpose")
 
@@ -35,10 +37,12 @@ def _is_up_to_date(index: Path, run_dir: Path) -> bool:
     return index.stat().st_mtime >= newest
 
 
-def main(run_dir: Path, overwrite: bool = False) -> Path:
+def main(conf: EstimatorConfig | None, poses_path: Path | None, run_dir: Path, overwrite: bool = False) -> Path:
     """Score a run and write ``run_dir/report/{summary.csv, frames.csv, index.html}``.
 
     Args:
+        conf: unused (the run's own config is read from ``run_dir``; the stage contract passes it to every stage).
+        poses_path: the estimates (None: ``run_dir/poses.parquet``, where the estimate stage writes them).
         run_dir: run directory (layout in :mod:`batchpose.report.runs`).
         overwrite: rebuild even when the report is newer than the run's tables.
 
@@ -51,8 +55,7 @@ def main(run_dir: Path, overwrite: bool = False) -> Path:
     run_dir = Path(run_dir)
     report_dir = run_dir / "report"
     index = report_dir / "index.html"
-    if not overwrite and _is_up_to_date(index, run_dir):
-        log.info("Skipping report: %s is up to date", index)
+    if up_to_date("report", index, overwrite, _is_up_to_date(index, run_dir)):
         return report_dir
     run = load_run(run_dir)
     report_dir.mkdir(parents=True, exist_ok=True)

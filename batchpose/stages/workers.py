@@ -37,3 +37,43 @@ def loky_options() -> dict:
     """``joblib.parallel_config`` options for this process's loky workers (one set for every pool of a run,
     so that loky reuses its workers from one stage to the next)."""
     return {"initializer": watch_parent, "initargs": (os.getpid(),)}
+
+
+def relax_loky_leak_check() -> None:
+    """Raise loky's per-worker memory-growth limit (300 MB) to 1.5 GB, our RSS budget per worker.
+
+    Loading the meshes and GL textures after loky's first measurement looks like a leak to it and gets
+    the worker restarted (and its libraries reloaded); the renderer bounds its own growth.
+    """
+    try:
+        from joblib.externals.loky import process_executor  # noqa: PLC0415
+    except ImportError:  # pragma: no cover
+        return
+    process_executor._MAX_MEMORY_LEAK_SIZE = max(process_executor._MAX_MEMORY_LEAK_SIZE, int(1.5e9))
+
+
+_THREADS: dict[str, int] = {}
+
+
+def limit_threads(threads: int | None) -> None:
+    """Let this worker's OpenCV and software renderer use ``threads`` threads (None: their defaults).
+
+    Both start one thread per core in every process, so two workers on two cores would run four of each
+    and fight over the cores; joblib caps only OpenMP/BLAS pools, and OpenCV's wheels use pthreads.
+    ``LP_NUM_THREADS`` (llvmpipe) is read when a GL context is made, so it is set before the first render.
+    """
+    if threads is None or _THREADS.get("threads") == threads:
+        return
+    import cv2  # noqa: PLC0415
+
+    cv2.setNumThreads(threads)
+    os.environ["LP_NUM_THREADS"] = str(threads)
+    _THREADS["threads"] = threads
+
+
+def threads_per_worker(jobs: int) -> int | None:
+    """Threads each of ``jobs`` workers on this machine gets (None for one worker: use every core)."""
+    if jobs <= 1:
+        return None
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, cores // jobs)

@@ -1,4 +1,4 @@
-"""Stage ``convert``: write a folder data set (YCB-Video, BOP, plain images) as one MCAP log.
+"""The ``batchpose convert`` command: write a folder data set (YCB-Video, BOP, plain images) as one MCAP log.
 
 The log holds ``/camera/image`` (foxglove.CompressedImage, the PNG/JPEG bytes copied, never
 re-encoded), ``/camera/calibration`` (foxglove.CameraCalibration) and, when the data set has ground
