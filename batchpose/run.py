@@ -28,21 +28,6 @@ from batchpose.stages.workers import threads_per_worker
 log = logging.getLogger("batchpose")
 
 
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 def _check_annotated(gt: pd.DataFrame, objects: list[str], manifest: Path, limit: int | None) -> None:
     """``targets: annotations`` estimates the objects each frame's ground truth lists: none listed is an
     error (nothing would be estimated), some never listed a warning."""
@@ -75,8 +60,6 @@ def _template_camera(frames_index: pd.DataFrame, manifest: Path, max_side_px: in
     raise CameraError(f"{manifest}: no frame has a usable camera calibration (first: {first_error})")
 
 
-
-
 @contextlib.contextmanager
 def _backend(backend: str, scheduler: str | None, jobs: int):
     """Yields the joblib backend name; for dask, a distributed Client is open for the block."""
@@ -100,12 +83,6 @@ def _backend(backend: str, scheduler: str | None, jobs: int):
         client.close()
         if cluster is not None:
             cluster.close()
-
-
-
-
-
-
 
 
 def _check_frames(job: Job, source: FrameSource, frames_index: pd.DataFrame) -> None:

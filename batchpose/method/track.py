@@ -17,6 +17,7 @@ caller (:func:`batchpose.method.tracked.estimate_tracked`) keeps one :class:`Tra
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -93,7 +94,7 @@ def seed(
     K: np.ndarray,
     dist: np.ndarray,
     conf: TrackConfig,
-    hidden: list[Occluder] = (),
+    hidden: Sequence[Occluder] = (),
 ):
     """Corners on the object at a known pose, where the frame looks like the mesh rendered there.
 
@@ -327,7 +328,7 @@ def follow_all(
             pk, stk, _ = cv2.calcOpticalFlowPyrLK(
                 tracks[members[0]].key_gray,
                 gray,
-                np.vstack([moved[i][2] for i in members]).reshape(-1, 1, 2).astype(np.float32),
+                np.vstack([_known(moved[i][2]) for i in members]).reshape(-1, 1, 2).astype(np.float32),
                 np.vstack([moved[i][0] for i in members]).reshape(-1, 1, 2).astype(np.float32),
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                 **{**lk, "maxLevel": 1},
@@ -431,3 +432,9 @@ def view_turn_deg(a: np.ndarray, b: np.ndarray) -> float:
     va, vb = (-T[:3, :3].T @ T[:3, 3] for T in (a, b))
     cos = float(va @ vb) / (float(np.linalg.norm(va) * np.linalg.norm(vb)) + 1e-12)
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+def _known(a: np.ndarray | None) -> np.ndarray:
+    """``a``, which the caller has checked is there."""
+    assert a is not None
+    return a

@@ -54,8 +54,6 @@ SUMMARY_COLUMNS = (
 )
 
 
-
-
 def _check_translation(t: np.ndarray, name: str) -> np.ndarray:
     t = np.asarray(t, dtype=np.float64)
     if t.shape not in ((3,), (3, 1)):
@@ -111,8 +109,6 @@ def adds(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarra
     gt = _transform(check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), pts)
     dist, _ = cKDTree(est).query(gt, k=1)
     return float(np.mean(dist))
-
-
 
 
 def translation_error_mm(t_est: np.ndarray, t_gt: np.ndarray) -> float:

@@ -292,4 +292,3 @@ def merge_shards(shard_dir: Path) -> pd.DataFrame:
     df = pd.concat(parts, ignore_index=True)
     df = df.drop_duplicates(subset=["frame_id", "obj_name"], keep="last")
     return df.sort_values(["scene_id", "im_id", "frame_id", "obj_name"], kind="stable").reset_index(drop=True)
-
