@@ -31,7 +31,7 @@ from batchpose.method.sequence import Sequence
 log = logging.getLogger("batchpose")
 
 #: A worker saves its chunk's progress at most this often (seconds): a kill loses about this much work.
-CHECKPOINT_S = 3.0
+CHECKPOINT_S = 1.0
 #: Bumped when the state file's content changes; a state of another format is ignored (the chunk restarts).
 STATE_FORMAT = 1
 
