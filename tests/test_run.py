@@ -58,10 +58,10 @@ def _csv(path):
 @pytest.mark.slow
 def test_resume_computes_only_missing_pairs(demo_run, tmp_path, cache_dir, stop_run):
     out = tmp_path / "resumed"
-    # Tasks of 2 frames (not track.chunk_frames' 32) so that the first run stops part-way; the demo's frames
-    # are not consecutive, so no pose is tracked and the task size cannot change a result.
+    # The demo's frames are not consecutive: each is a task of its own (a sequence breaks between them), no
+    # pose is tracked, and the run stopped after two tasks has two pairs.
     small = ["track.chunk_frames=2"]
-    stop_run(after=1)
+    stop_run(after=2)
     with pytest.raises(stop_run.Stopped):
         run.main(PIPELINE, DEMO, out, cache_dir=cache_dir, overrides=small, jobs=1, report=False)
     stop_run.disarm()
@@ -522,3 +522,23 @@ def test_a_killed_run_leaves_no_worker_behind(tmp_path, cache_dir, stage):
         time.sleep(0.5)
     assert not alive(workers), f"workers {sorted(alive(workers))} of the killed run are still running"
     # (that a killed run resumes: test_killed_run_resumes_without_redoing_work)
+
+
+def test_a_task_ends_where_the_sequence_breaks():
+    """While tracking, a task (chunk) holds consecutive frames of one sequence only: the demo's frames are
+    not consecutive, so each is a task of its own and both workers get work; without tracking, tasks are
+    ``chunk_size`` frames whatever they are."""
+    from batchpose.io.manifest import load_manifest
+    from batchpose.io.sources import open_frames
+    from batchpose.stages.estimate import EstimateInputs, _chunks
+
+    man = load_manifest(DEMO)
+    source = open_frames(man.frames, man.path.parent)
+    inputs = EstimateInputs(source, {o.name: ROOT for o in man.objects}, {}, {}, man.targets)
+    tracked = [[f.frame_id for f in c.frames] for c in _chunks(inputs, set(), 64, max_gap_s=0.5)]
+    assert tracked == [["0000/000001"], ["0000/000004"], ["0000/000008"], ["0001/000001"], ["0001/000003"]]
+    plain = [len(c.frames) for c in _chunks(inputs, set(), 2)]
+    assert plain == [2, 2, 1]
+    done = {("0000/000004", "009_gelatin_box")}  # a finished pair: its task is skipped, the others keep their ids
+    ids = [c.chunk_id for c in _chunks(inputs, done, 64, max_gap_s=0.5)]
+    assert ids == ["c000000", "c000002", "c000003", "c000004"]

@@ -28,7 +28,7 @@ from batchpose.io import library
 from batchpose.io.files import write_parquet_atomic
 from batchpose.io.mesh import load_mesh
 from batchpose.method.estimator import PoseEstimator
-from batchpose.method.sequence import Sequence
+from batchpose.method.sequence import Sequence, Stamp, is_next
 from batchpose.stages import up_to_date
 from batchpose.stages.checkpoints import ChunkFiles, Saver, chunk_key
 from batchpose.stages.workers import limit_threads, loky_options, relax_loky_leak_check
@@ -164,9 +164,12 @@ def _targets(frame: Frame, objects: list[str], targets_mode: str) -> list[str]:
     return names
 
 
-def _chunks(inputs: EstimateInputs, done: set, chunk_size: int) -> Iterator[Chunk]:
+def _chunks(inputs: EstimateInputs, done: set, chunk_size: int, max_gap_s: float | None = None) -> Iterator[Chunk]:
     """The chunks with a pair not in ``done``. A chunk is the same frames whatever was done before (its id
-    is its first frame's index), so a resumed run estimates what an uninterrupted one would."""
+    is its first frame's index), so a resumed run estimates what an uninterrupted one would. With
+    ``max_gap_s`` (tracking), a chunk also ends where the sequence breaks (a frame that is not the next of
+    the one before: :func:`~batchpose.method.sequence.is_next`), where the estimator starts afresh anyway:
+    unrelated sequences go to different workers."""
     objects, chunk = list(inputs.lib_dirs), None
     for i, frame in enumerate(inputs.source):
         if inputs.limit is not None and i >= inputs.limit:
@@ -174,6 +177,10 @@ def _chunks(inputs: EstimateInputs, done: set, chunk_size: int) -> Iterator[Chun
         names = _targets(frame, objects, inputs.targets_mode)
         if not names:
             continue
+        if chunk is not None and max_gap_s is not None and not is_next(Stamp.of(chunk.frames[-1]), frame, max_gap_s):
+            if len(chunk.done) < sum(map(len, chunk.targets)):
+                yield chunk
+            chunk = None
         chunk = chunk or Chunk(f"c{i:06d}")
         chunk.frames.append(frame)
         chunk.targets.append(names)
@@ -197,7 +204,7 @@ def main(conf: EstimatorConfig, inputs: EstimateInputs, run_dir: Path, overwrite
         p.unlink()
     done = done_pairs(shard_dir)
     chunk_size = max(inputs.chunk_size, conf.track.chunk_frames) if conf.track.enabled else inputs.chunk_size
-    pending = _chunks(inputs, done, chunk_size)
+    pending = _chunks(inputs, done, chunk_size, conf.track.max_gap_s if conf.track.enabled else None)
     first = next(pending, None)
     # (ingest removes poses.parquet whenever the frames it covers change)
     if up_to_date("estimation", out, overwrite, fresh=first is None, detail="every pair estimated"):
