@@ -198,7 +198,7 @@ class RefineConfig:
     """Also try the best hypothesis turned 180 degrees about each of the mesh's principal axes (the poses a
     texture-symmetric object is most often confused with); keep whichever has the most guided inliers."""
     polish: bool = False
-    """Finish every full estimate with a dense render-and-compare alignment (:meth:`PoseEstimator._polish`):
+    """Finish every full estimate with a dense render-and-compare alignment (``method.hypotheses.polish``):
     corners of the frame on the mesh rendered at the pose are found again, by normalised cross-correlation
     within ``polish_search_px``, in that render, and the pose is solved again by Levenberg-Marquardt from
     them (the tracker's ``track.render_every`` step), ``polish_rounds`` times. It sharpens the distance
