@@ -130,10 +130,6 @@ def _previous_run(run_dir: Path) -> dict | None:
     return previous
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    write_text_atomic(path, text, encoding=None)
-
-
 @dataclasses.dataclass(frozen=True)
 class Job:
     """A run's resolved inputs, checked before anything is written."""
@@ -194,8 +190,8 @@ def claim(job: Job, overwrite: bool) -> None:
     if overwrite and previous is not None:
         _clear_results(run_dir)  # before the new config is written: a killed rerun never mixes the two
     try:
-        _write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False))
-        _write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2))
-        _write_text_atomic(run_dir / "manifest.yaml", yaml.safe_dump(man.to_dict(), sort_keys=False))
+        write_text_atomic(saved, yaml.safe_dump(resolved, sort_keys=False), encoding=None)
+        write_text_atomic(run_dir / "versions.json", json.dumps(versions(), indent=2), encoding=None)
+        write_text_atomic(run_dir / "manifest.yaml", yaml.safe_dump(man.to_dict(), sort_keys=False), encoding=None)
     except OSError as e:
         raise ConfigError(f"--out {run_dir}: cannot write there ({e.strerror or e})") from None

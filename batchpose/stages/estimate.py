@@ -10,6 +10,7 @@ merged into ``run_dir/poses.parquet``.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections import Counter
@@ -212,8 +213,7 @@ def main(conf: EstimatorConfig, inputs: EstimateInputs, run_dir: Path, overwrite
     if done:
         log.info("Resuming: %d (frame, object) pairs already estimated", len(done))
     t0 = time.perf_counter()
-    chunks = [] if first is None else [first]
-    new_pairs = _run_chunks(conf, inputs, shard_dir, _chain(chunks, pending))
+    new_pairs = _run_chunks(conf, inputs, shard_dir, itertools.chain([] if first is None else [first], pending))
     df = merge_shards(shard_dir)
     if inputs.frame_ids is not None:
         df = df[df["frame_id"].isin(inputs.frame_ids)].reset_index(drop=True)
@@ -231,11 +231,6 @@ def clear(run_dir: Path) -> None:
     (Path(run_dir) / "poses.parquet").unlink(missing_ok=True)
 
 
-def _chain(first: list[Chunk], rest: Iterator[Chunk]) -> Iterator[Chunk]:
-    yield from first
-    yield from rest
-
-
 def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, chunks: Iterator[Chunk]) -> int:
     """Estimate the chunks on the workers; each chunk's shard is written as soon as it is done. Returns the
     number of pairs estimated."""
@@ -249,12 +244,7 @@ def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, 
     )
     # Workers on this machine save their progress; a cluster's may not see the run directory.
     saves = str(shard_dir) if inputs.backend == "loky" else None
-    ids: dict[int, str] = {}
-
-    def tasks():
-        for chunk in chunks:
-            ids[len(ids)] = chunk.chunk_id
-            yield joblib.delayed(_task)(len(ids) - 1, chunk, setup, saves)
+    tasks = (joblib.delayed(_task)(chunk, setup, saves) for chunk in chunks)
 
     total = inputs.source.count() if inputs.limit is None else min(inputs.source.count(), inputs.limit)
     new_pairs = 0
@@ -266,15 +256,15 @@ def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, 
     ):
         # Unordered: each chunk's shard is written as soon as it is done, not held behind a slower one.
         parallel = joblib.Parallel(return_as="generator_unordered", pre_dispatch="2*n_jobs")
-        for k, rows in parallel(tasks()):
-            ChunkFiles(shard_dir, ids[k]).finish(rows)
+        for chunk_id, rows in parallel(tasks):
+            ChunkFiles(shard_dir, chunk_id).finish(rows)
             new_pairs += len(rows)
             bar.update(len({r["frame_id"] for r in rows}))
     return new_pairs
 
 
-def _task(k: int, chunk: Chunk, setup: WorkerSetup, shard_dir: str | None) -> tuple[int, list[dict]]:
-    return k, estimate_chunk(chunk, setup, shard_dir)
+def _task(chunk: Chunk, setup: WorkerSetup, shard_dir: str | None) -> tuple[str, list[dict]]:
+    return chunk.chunk_id, estimate_chunk(chunk, setup, shard_dir)
 
 
 def _log_counts(df: pd.DataFrame, new_pairs: int, seconds: float) -> None:
