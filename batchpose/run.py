@@ -18,6 +18,7 @@ import pandas as pd
 
 from batchpose.core.frames import Camera, FrameSource, working_camera
 from batchpose.errors import CameraError, ConfigError
+from batchpose.io.manifest import object_ids
 from batchpose.io.mesh import load_mesh
 from batchpose.io.sources import SelectedFrames, open_frames
 from batchpose.run_dir import Job, claim, exclusive, prepare
@@ -85,7 +86,7 @@ def _backend(backend: str, scheduler: str | None, jobs: int):
             cluster.close()
 
 
-def _check_frames(job: Job, source: FrameSource, frames_index: pd.DataFrame) -> None:
+def _check_frames(job: Job, source: FrameSource, frames_index: pd.DataFrame, targets: str) -> None:
     """Refuse a run with no frames to estimate, saying why (none chosen, none at all, none annotated)."""
     man = job.manifest
     if frames_index.empty:
@@ -96,16 +97,26 @@ def _check_frames(job: Job, source: FrameSource, frames_index: pd.DataFrame) -> 
                 chosen += f"; its images span {source.span_s[0]:.3g}-{source.span_s[1]:.4g} s of the log"
             raise ConfigError(f"{man.path}: none of the data set's frames is chosen ({chosen})")
         raise ConfigError(f"{man.path}: the data set has no frames")
-    if man.targets == "annotations":
+    if targets == "annotations":
         objects = [o.name for o in man.objects]
         _check_annotated(pd.read_parquet(job.run_dir / "gt.parquet"), objects, man.path, job.limit)
 
 
-def _template_inputs(job: Job, source: FrameSource, frames_index: pd.DataFrame, jobs: int) -> TemplateInputs:
+def _targets(job: Job) -> str:
+    """The manifest's ``targets``, with ``auto`` resolved: the annotated objects where the data set has ground
+    truth (in the frames this run uses), every object in every frame where it has none."""
+    if job.manifest.targets != "auto":
+        return job.manifest.targets
+    has_gt = not pd.read_parquet(job.run_dir / "gt.parquet", columns=["frame_id"]).empty
+    targets = "annotations" if has_gt else "all"
+    log.info("targets: %s (the data set %s ground truth)", targets, "has" if has_gt else "has no")
+    return targets
+
+
+def _template_inputs(job: Job, frames_index: pd.DataFrame, obj_ids: dict[str, int], jobs: int) -> TemplateInputs:
     man, conf = job.manifest, job.conf
     K0, width, height = _template_camera(frames_index, man.path, conf.max_image_side_px)
     models = {o.name: load_mesh(o.mesh, conf.mesh, name=o.name, cache_dir=job.cache_dir) for o in man.objects}
-    obj_ids = {o.name: source.obj_id(o.name) for o in man.objects}
     return build_templates.TemplateInputs(
         models,
         obj_ids,
@@ -147,11 +158,13 @@ def main(
         claim(job, overwrite)
         source = open_frames(man.frames, man.path.parent)
         log.info("data: %s", source.describe())
-        objects = [o.name for o in man.objects]
-        frames_path = ingest.main(conf, ingest.IngestInputs(source, objects, limit), job.run_dir, overwrite)
+        obj_ids = object_ids(man.objects, {o.name: source.obj_id(o.name) for o in man.objects})
+        ingested = ingest.IngestInputs(source, [o.name for o in man.objects], limit, obj_ids)
+        frames_path = ingest.main(conf, ingested, job.run_dir, overwrite)
         frames_index = pd.read_parquet(frames_path)
-        _check_frames(job, source, frames_index)
-        templates = _template_inputs(job, source, frames_index, jobs)
+        targets = _targets(job)
+        _check_frames(job, source, frames_index, targets)
+        templates = _template_inputs(job, frames_index, obj_ids, jobs)
         objects_path = build_templates.main(conf, templates, job.run_dir, overwrite)
         with _backend(backend, scheduler, jobs) as jl_backend:
             inputs = estimate.EstimateInputs(
@@ -159,7 +172,7 @@ def main(
                 build_templates.library_dirs(objects_path),
                 templates.obj_ids,
                 {o.name: o.mesh for o in man.objects},
-                man.targets,
+                targets,
                 limit=limit,
                 frame_ids=set(frames_index["frame_id"]),
                 mesh_cache=job.cache_dir,

@@ -83,13 +83,32 @@ def _mesh_hash(path: Path) -> str:
 
 
 #: What ``--overwrite`` removes from an earlier run (the user's other files in the folder are left alone).
-_RESULTS = ("ingest.json", "frames.parquet", "gt.parquet", "poses.parquet", "poses.csv", "poses.mcap", "objects.json")
+_RESULTS = (
+    "ingest.json",
+    "frames.parquet",
+    "gt.parquet",
+    "poses.parquet",
+    "poses.csv",
+    "trajectory.csv",
+    "poses.mcap",
+    "foxglove_layout.json",
+    "objects.json",
+)
 
 
 def _clear_results(run_dir: Path) -> None:
     estimate.clear(run_dir)
     for name in _RESULTS:
         (run_dir / name).unlink(missing_ok=True)
+    for tum in (run_dir / "tum").glob("*.txt"):
+        tum.unlink()
+
+
+def _estimated_nothing(run_dir: Path) -> bool:
+    """True when the run in ``run_dir`` has no estimate yet: no shard, checkpoint or merged poses."""
+    shards = run_dir / "shards"
+    saved = (p for pattern in ("shard-*.parquet", "chunk-*.state") for p in shards.glob(pattern))
+    return not (run_dir / "poses.parquet").exists() and next(saved, None) is None
 
 
 def _comparable(resolved: dict) -> dict:
@@ -177,7 +196,11 @@ def claim(job: Job, overwrite: bool) -> None:
     previous = _previous_run(run_dir)
     if previous is not None and not overwrite:
         plain = json.loads(json.dumps(resolved))
-        if _comparable(previous) != _comparable(plain):
+        if _comparable(previous) != _comparable(plain) and _estimated_nothing(run_dir):
+            # a run that failed before estimating (a wrong manifest, no ground truth) does not lock its folder
+            log.info("%s: replacing an earlier run of another config or manifest that estimated nothing", run_dir)
+            _clear_results(run_dir)
+        elif _comparable(previous) != _comparable(plain):
             raise ConfigError(
                 f"{run_dir}: holds a run with a different config or manifest; use another --out or --overwrite"
             )

@@ -65,6 +65,23 @@ def _limit_texture(mesh: trimesh.Trimesh, max_px: int) -> None:
             setattr(mat, attr, img.resize(size, Image.Resampling.LANCZOS))
 
 
+#: Warnings already given by this process: a mesh is loaded by the run, its workers' setup and the report,
+#: and the user is told about its units once.
+_WARNED: set[str] = set()
+
+
+def _warn_once(message: str) -> None:
+    key = message.split(": bounding-box")[0]  # one warning per mesh file, whichever load gives it
+    if key not in _WARNED:
+        _WARNED.add(key)
+        log.warning("%s", message)
+
+
+def quiet_mesh_warnings(paths) -> None:
+    """Treat the unit warnings of the meshes at ``paths`` as given (in a worker: the run gave them)."""
+    _WARNED.update(str(Path(p)) for p in paths)
+
+
 def unit_scale(path: Path, bounds: np.ndarray, conf: MeshConfig = MeshConfig()) -> float:
     """Factor that brings a mesh file's coordinates to metres: the units rule of :func:`load_mesh`.
 
@@ -93,7 +110,7 @@ def unit_scale(path: Path, bounds: np.ndarray, conf: MeshConfig = MeshConfig()) 
                 f"{path}: bounding-box diagonal is {diag:.1f} units, so the mesh looks like millimetres; "
                 "convert it to metres or set mesh.on_millimetres: convert"
             )
-        log.warning("%s: bounding-box diagonal %.1f looks like millimetres; scaling by 0.001", path, diag)
+        _warn_once(f"{path}: bounding-box diagonal {diag:.1f} looks like millimetres; scaling by 0.001")
         units = "mm"
     return 0.001 if units == "mm" else 1.0
 
@@ -126,7 +143,7 @@ def load_mesh(
     cached = _read_cached(entry, digest)
     if cached is not None:
         if cached.scale != 1.0 and conf.units == "auto":  # as the first load warned
-            log.warning("%s: looks like millimetres (as when it was cached); scaling by %g", path, cached.scale)
+            _warn_once(f"{path}: bounding-box diagonal looks like millimetres; scaling by {cached.scale:g}")
         return dataclasses.replace(cached, name=name, path=path)
     model = _parse_mesh(path, conf, name, digest)
     _write_cached(entry, model)

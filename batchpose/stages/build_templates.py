@@ -85,8 +85,9 @@ def build_library(
 
 
 def _build_in_worker(mesh_path: str, name: str, conf: EstimatorConfig, K, width, height, cache_dir) -> Path:
-    from batchpose.io.mesh import load_mesh  # noqa: PLC0415
+    from batchpose.io.mesh import load_mesh, quiet_mesh_warnings  # noqa: PLC0415
 
+    quiet_mesh_warnings([mesh_path])  # the run warned about the mesh's units
     model = load_mesh(Path(mesh_path), conf.mesh, name=name, cache_dir=cache_dir)
     return build_library(model, conf, K, width, height, cache_dir)
 

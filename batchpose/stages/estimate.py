@@ -27,7 +27,7 @@ from batchpose.core.frames import Frame, FrameSource
 from batchpose.core.poses import PoseRecord
 from batchpose.io import library
 from batchpose.io.files import write_parquet_atomic
-from batchpose.io.mesh import load_mesh
+from batchpose.io.mesh import load_mesh, quiet_mesh_warnings
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.sequence import Sequence, Stamp, is_next
 from batchpose.stages import up_to_date
@@ -111,6 +111,7 @@ def _estimator(setup: WorkerSetup) -> PoseEstimator:
             from batchpose.method.render import get_renderer  # noqa: PLC0415 - GL only where it renders
 
             cache = Path(setup.mesh_cache) if setup.mesh_cache else None
+            quiet_mesh_warnings(setup.mesh_paths.values())  # the run warned about the meshes' units
             models = {
                 name: load_mesh(Path(p), conf.mesh, name=name, cache_dir=cache) for name, p in setup.mesh_paths.items()
             }

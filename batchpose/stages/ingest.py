@@ -44,11 +44,13 @@ def _read_json(path: Path):
 @dataclass(frozen=True)
 class IngestInputs:
     """What ingest reads: the frames (:func:`batchpose.io.sources.open_frames`), the objects of interest
-    (ground truth of other objects is not kept) and ``limit`` (index only the first ``limit`` frames)."""
+    (ground truth of other objects is not kept), ``limit`` (index only the first ``limit`` frames) and the
+    objects' ids (``obj_id`` in ``gt.parquet``; the data set's own where not given)."""
 
     source: FrameSource
     objects: list[str]
     limit: int | None = None
+    obj_ids: dict[str, int] | None = None
 
 
 def main(conf: EstimatorConfig | None, inputs: IngestInputs, run_dir: Path, overwrite: bool = False) -> Path:
@@ -68,7 +70,7 @@ def main(conf: EstimatorConfig | None, inputs: IngestInputs, run_dir: Path, over
     run_dir = Path(run_dir)
     out, gt_out, stamp = run_dir / "frames.parquet", run_dir / "gt.parquet", run_dir / "ingest.json"
     covers = {"limit": limit}
-    frames, gt = _index(source, objects, limit)
+    frames, gt = _index(source, objects, limit, inputs.obj_ids or {})
     old = None if overwrite else _read_index(out, gt_out)
     if old is not None:
         _check_unchanged(old[0], frames, source)
@@ -120,7 +122,7 @@ def _check_unchanged(old: pd.DataFrame, new: pd.DataFrame, source) -> None:
         )
 
 
-def _index(source, objects: list[str], limit: int | None) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _index(source, objects: list[str], limit: int | None, obj_ids: dict[str, int]) -> tuple[pd.DataFrame, pd.DataFrame]:
     rows, gt_rows = [], []
     wanted = set(objects)
     total = source.count()
@@ -151,7 +153,7 @@ def _index(source, objects: list[str], limit: int | None) -> tuple[pd.DataFrame,
                     {
                         "frame_id": f.frame_id,
                         "obj_name": p.obj_name,
-                        "obj_id": source.obj_id(p.obj_name),
+                        "obj_id": obj_ids.get(p.obj_name) or source.obj_id(p.obj_name),
                         "R": np.asarray(p.cam_from_model[:3, :3], float).reshape(-1).tolist(),
                         "t_m": np.asarray(p.cam_from_model[:3, 3], float).tolist(),
                     }

@@ -15,7 +15,12 @@ def watch_parent(parent_pid: int, every_s: float = 1.0) -> None:
     the dead run's queues never report empty). A daemon thread checks once a ``every_s`` whether the
     worker's parent is still ``parent_pid`` and ends the process when it is not; the dead run's unsaved
     results are lost either way and are computed again by a rerun.
+
+    It also raises loky's memory-growth limit in the worker (:func:`relax_loky_leak_check`): building a
+    template library grows a worker by more than loky's 300 MB, which it takes for a leak, restarting the
+    worker with a warning that reads like a crash.
     """
+    relax_loky_leak_check()
     if os.getppid() != parent_pid:
         try:
             os.kill(parent_pid, 0)
