@@ -14,7 +14,9 @@ Layouts:
     optional ``scene_gt.json`` (``cam_R_m2c`` row-major, ``cam_t_m2c`` in mm, ``obj_id``) and
     ``rgb/<im_id:06d>.png|jpg``.
     ``images``: a folder of ``.png`` / ``.jpg`` files plus an intrinsics YAML with ``fx, fy, cx, cy,
-    width, height`` and optional ``dist`` (OpenCV order) and ``distortion_model``.
+    width, height`` and optional ``dist`` (OpenCV order) and ``distortion_model``, or the camera-info YAML
+    ROS's ``camera_calibration`` writes (``ost.yaml``); found in the folder by the names of
+    :data:`INTRINSICS_NAMES` unless the manifest names it.
     ``mcap``: see :mod:`batchpose.io.mcap_read`.
 
 Folder data sets carry no capture times, so ``stamp_ns`` is synthetic: ``index * 33_333_333`` (30 Hz
@@ -47,6 +49,8 @@ YCBV_SYN_SCENE_ID = 10000
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 INTRINSICS_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+#: The calibration files an image folder is searched for, in this order (``ost.yaml``: ROS's camera_calibration).
+INTRINSICS_NAMES = ("intrinsics.yaml", "ost.yaml", "camera_info.yaml", "calibration.yaml")
 
 
 def image_format_of(path: Path) -> str:
@@ -484,19 +488,56 @@ def _camera_info_intrinsics(path: Path, raw: dict[str, Any]) -> Camera:
     return cam.validate(where=str(path))
 
 
+def find_intrinsics(root: Path) -> Path | None:
+    """The calibration file of an image folder: the first of :data:`INTRINSICS_NAMES` in ``root`` (None: none)."""
+    for name in INTRINSICS_NAMES:
+        if (Path(root) / name).is_file():
+            return Path(root) / name
+    return None
+
+
+def list_images(root: Path) -> list[Path]:
+    """The ``.png`` / ``.jpg`` files of a folder (not searched recursively), sorted by name: the frames of an
+    ``images`` data set, in order."""
+    return sorted(p for p in Path(root).iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def folder_format(root: Path) -> str:
+    """The layout of a data set folder: ``ycbv`` (``classes.txt`` and ``data/`` or ``data_syn/``), ``bop``
+    (``scene_camera.json`` in it or in a scene folder) or ``images``."""
+    root = Path(root)
+    if (root / "classes.txt").is_file() and ((root / "data").is_dir() or (root / "data_syn").is_dir()):
+        return "ycbv"
+    if (root / "scene_camera.json").is_file() or any(
+        (p / "scene_camera.json").is_file() for p in root.iterdir() if p.is_dir()
+    ):
+        return "bop"
+    return "images"
+
+
 class ImagesFrameSource(FrameSource):
     """A folder of ``.png`` / ``.jpg`` images (sorted by name) sharing one intrinsics YAML.
 
     Args:
         root: image folder (not searched recursively).
-        intrinsics: intrinsics YAML; default ``root/intrinsics.yaml``.
+        intrinsics: intrinsics YAML; default: the first of :data:`INTRINSICS_NAMES` in ``root``
+            (``intrinsics.yaml``, then ROS's ``ost.yaml``, ...).
+
+    Raises:
+        DataError: no folder, no image in it, or no calibration file (see :func:`load_intrinsics` for a bad one).
     """
 
     def __init__(self, root: Path, intrinsics: Path | None = None) -> None:
         self.root = _require_dir(Path(root), "images root")
-        self.intrinsics = Path(intrinsics) if intrinsics is not None else self.root / "intrinsics.yaml"
+        found = find_intrinsics(self.root) if intrinsics is None else Path(intrinsics)
+        if found is None:
+            raise DataError(
+                f"{self.root}: no calibration file (expected one of {', '.join(INTRINSICS_NAMES)} in the folder, "
+                "or frames.intrinsics in the manifest)"
+            )
+        self.intrinsics = found
         self.camera = load_intrinsics(self.intrinsics)
-        self._paths = sorted(p for p in self.root.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+        self._paths = list_images(self.root)
         if not self._paths:
             raise DataError(f"{self.root}: no .png/.jpg images")
         self._warned_size = False

@@ -12,7 +12,7 @@ import json
 import logging
 import struct
 from collections import defaultdict
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +60,7 @@ class McapLog:
         n_messages: number of messages (read or, indexed, recorded).
         start_ns: log time of its first message of any topic (where Foxglove's timeline starts); None when
             the file says nothing (no statistics record).
+        end_ns: log time of its last message of any topic; None when the file says nothing.
 
     Raises:
         DataError: the file does not exist, is not an MCAP file (a ROS 1 bag and an SQLite database are
@@ -98,6 +99,7 @@ class McapLog:
         self.lost_bytes = 0
         self.n_messages = 0
         self.start_ns: int | None = None
+        self.end_ns: int | None = None
         if tail == MCAP_MAGIC and self.size > 16 and self._read_summary():
             self.indexed = True
         else:
@@ -122,6 +124,7 @@ class McapLog:
                     self.n_messages = summary.statistics.message_count
                     if self.n_messages:
                         self.start_ns = int(summary.statistics.message_start_time)
+                        self.end_ns = int(summary.statistics.message_end_time)
                 for m in reader.iter_metadata():
                     self.metadata[m.name] = dict(m.metadata)
         except _READ_ERRORS as e:
@@ -141,6 +144,8 @@ class McapLog:
                         counts[rec.channel_id] += 1
                         if self.start_ns is None or rec.log_time < self.start_ns:
                             self.start_ns = int(rec.log_time)
+                        if self.end_ns is None or rec.log_time > self.end_ns:
+                            self.end_ns = int(rec.log_time)
                         ch = self.channels.get(rec.channel_id)
                         if ch is not None and ch.topic == GT_TOPIC:
                             self._collect_obj_ids(rec.data)
@@ -241,7 +246,7 @@ class McapLog:
 
     # -- records
 
-    def iter_raw(self, topics: Iterable[str] | None = None) -> Iterator[RawRecord]:
+    def iter_raw(self, topics: Iterable[str] | None = None) -> Generator[RawRecord, None, None]:
         """Yield (schema, channel, message) records, undecoded: log-time order when the file is indexed,
         file order otherwise (stopping silently where a truncated file breaks off).
 

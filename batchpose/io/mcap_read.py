@@ -26,6 +26,7 @@ decodes messages, and :class:`_FrameAssembler` here turns image messages into fr
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import logging
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ from batchpose.errors import BatchposeError, CameraError, DataError, ImageError
 from batchpose.io.mcap_decode import BadMessage, Calib, GroundTruth, ImageMsg, MessageDecoder, camera_of
 from batchpose.io.mcap_log import McapLog, RawRecord
 from batchpose.io.mcap_topics import (
+    CALIBRATION_SCHEMAS,
     DEPTH_MAX_GAP_NS,
     DEPTH_UNITS_M,
     GT_TOPIC,
@@ -109,6 +111,7 @@ class McapFrameSource(FrameSource):
         self._log = McapLog(path)
         self.path = self._log.path
         topics, count = self._log.topics(), self._log.topic_count
+        check_named_topics(self.path, topics, image=image_topic, calibration=calibration_topic, depth=depth_topic)
         self.depth_topic = None if depth_topic is None else image_type_topic(self.path, topics, depth_topic, "depth")
         self.image_topic = choose_image_topic(self.path, topics, count, image_topic, self.depth_topic)
         self.calibration_topic = choose_calibration_topic(self.path, topics, count, calibration_topic, self.image_topic)
@@ -340,6 +343,36 @@ class McapFrameSource(FrameSource):
         return (
             f"mcap {self.path} ({n} frame{'s' if n != 1 else ''} on {self.image_topic}, "
             f"calibration {self.calibration_topic}{gt})"
+        )
+
+
+def check_named_topics(path: Path, topics: dict[str, str], **named: str | None) -> None:
+    """Check that every topic a manifest or the user named is in the log.
+
+    Args:
+        path: the log (named in the error).
+        topics: the log's topic -> schema name.
+        named: what each topic is meant as (``image``, ``calibration``, ``depth``) -> the topic named, or None.
+
+    Raises:
+        CameraError: a calibration topic that is not in the log; DataError: an image or depth topic that is not.
+            The message lists the log's image and calibration topics and names the nearest topic (``did you
+            mean``; of the same kind when one is close).
+    """
+    for what, wanted in named.items():
+        if wanted is None or wanted in topics:
+            continue
+        images = [t for t, s in topics.items() if s in IMAGE_SCHEMAS]
+        calibrations = [t for t, s in topics.items() if s in CALIBRATION_SCHEMAS]
+        same_kind = calibrations if what == "calibration" else images
+        near = difflib.get_close_matches(wanted, same_kind, n=1, cutoff=0.5) or difflib.get_close_matches(
+            wanted, list(topics), n=1, cutoff=0.5
+        )
+        error = CameraError if what == "calibration" else DataError
+        raise error(
+            f"{path}: {what} topic {wanted!r} not found (image topics: {', '.join(images) or 'none'}; "
+            f"calibration topics: {', '.join(calibrations) or 'none'})"
+            + (f"; did you mean {near[0]!r}?" if near else "")
         )
 
 
