@@ -48,7 +48,7 @@ lock-upgrade:
 	$(MAKE) lock UV_ARGS=--upgrade
 
 demo: setup
-	$(VENV)/bin/batchpose run pipelines/gnc_pose.yaml --manifest data_manifest/demo.yaml --out runs/demo
+	$(VENV)/bin/batchpose run --manifest data_manifest/demo.yaml --out runs/demo
 	@echo
 	@echo "Output MCAP (open in Foxglove, see docs/foxglove.md): $(CURDIR)/runs/demo/poses.mcap"
 	@echo "HTML report:                                          $(CURDIR)/runs/demo/report/index.html"

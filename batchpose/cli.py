@@ -1,4 +1,4 @@
-"""Command-line interface: ``batchpose run | convert | report | compare``.
+"""Command-line interface: ``batchpose run | inspect | init | convert | report | compare | score | pipelines``.
 
 Any :class:`~batchpose.errors.BatchposeError`, or a file the user named that cannot be read or written, is
 printed as one line on stderr and exits with code 2; any other exception (a bug) as one line with code 1
@@ -28,11 +28,25 @@ def _cmd_convert(args: argparse.Namespace) -> None:
     print(f"wrote {out}")
 
 
+def _pipeline_path(args: argparse.Namespace) -> Path:
+    """The pipeline YAML of ``run``: ``--pipeline NAME|PATH``, or the positional ``PIPELINE`` of older scripts,
+    or the default; both given must name the same file."""
+    from batchpose.config import pipelines
+
+    given = [v for v in (args.pipeline_file, args.pipeline) if v]
+    paths = [pipelines.resolve(v) for v in given] or [pipelines.resolve(pipelines.DEFAULT)]
+    if len(paths) == 2 and paths[0].resolve() != paths[1].resolve():
+        raise BatchposeError(
+            f"run: PIPELINE {given[0]} and --pipeline {given[1]} are different pipelines; give one of them"
+        )
+    return paths[-1]
+
+
 def _cmd_run(args: argparse.Namespace) -> None:
     from batchpose import run
 
     run.main(
-        Path(args.pipeline),
+        _pipeline_path(args),
         Path(args.manifest),
         Path(args.out),
         cache_dir=Path(args.cache) if args.cache else None,
@@ -43,6 +57,31 @@ def _cmd_run(args: argparse.Namespace) -> None:
         overwrite=args.overwrite,
         limit=args.limit,
     )
+
+
+def _cmd_pipelines(args: argparse.Namespace) -> None:
+    from batchpose.config import pipelines
+
+    labels = {n: f"{n} (default)" if n == pipelines.DEFAULT else n for n in pipelines.available()}
+    width = max(map(len, labels.values()))
+    for name, text in pipelines.available().items():
+        print(f"  {labels[name]:<{width}}  {text or '(no description)'}")
+    print(f"\nbatchpose run --pipeline NAME ...; to make your own, copy one from {pipelines.pipelines_dir()}")
+
+
+def _cmd_inspect(args: argparse.Namespace) -> None:
+    from batchpose import inspect_log
+
+    print(inspect_log.describe(Path(args.path)))
+
+
+def _cmd_init(args: argparse.Namespace) -> None:
+    from batchpose import init_manifest
+
+    out = init_manifest.main(Path(args.log), Path(args.meshes), Path(args.out), overwrite=args.overwrite)
+    out = Path(out) if out else Path(args.out)
+    print(f"wrote {out}")
+    print(f"next: batchpose run --manifest {out} --out runs/{out.stem}")
 
 
 def _cmd_report(args: argparse.Namespace) -> None:
@@ -79,24 +118,46 @@ def _cmd_score(args: argparse.Namespace) -> None:
     print(summary[cols].to_string(index=False, float_format=lambda v: f"{v:.1f}"))
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="batchpose",
-        description="Learning-free 6D pose (GNC-Pose) of textured objects in camera logs, on CPU, in batch.",
-    )
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    p.add_argument(
-        "--version", action=_Version, nargs=0, help="print batchpose's version and its libraries' (for bug reports)"
-    )
-    sub = p.add_subparsers(dest="command", required=True)
+def _examples(*lines: str) -> str:
+    return "examples:\n" + "\n".join(f"  {line}" for line in lines)
 
-    r = sub.add_parser(
+
+def _subcommand(sub, common: argparse.ArgumentParser, name: str, examples: list[str], **kwargs):
+    """A subcommand that takes ``-v`` too and ends its ``--help`` with examples."""
+    return sub.add_parser(
+        name,
+        parents=[common],
+        epilog=_examples(*examples),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        **kwargs,
+    )
+
+
+def _add_run(sub, common: argparse.ArgumentParser) -> None:
+    r = _subcommand(
+        sub,
+        common,
         "run",
+        [
+            "batchpose run --manifest data_manifest/demo.yaml --out runs/demo",
+            "batchpose run --pipeline fast --manifest my_log.yaml --out runs/my_log_fast --set gnc.kappa=3",
+            "batchpose run --pipeline my_pipeline.yaml --manifest my_log.yaml --out runs/mine --jobs 4",
+        ],
         help="run the pipeline: ingest -> templates -> estimate -> MCAP -> report",
         description="Run a pipeline over the frames of a data manifest. Finished stages and finished "
         "(frame, object) pairs are skipped on a rerun; a killed run resumes.",
     )
-    r.add_argument("pipeline", help="pipeline YAML, e.g. pipelines/gnc_pose.yaml")
+    r.add_argument(
+        "pipeline_file",
+        nargs="?",
+        metavar="PIPELINE",
+        help="pipeline YAML (older form of --pipeline; if both are given they must agree)",
+    )
+    r.add_argument(
+        "--pipeline",
+        metavar="NAME|PATH",
+        help="a bundled pipeline by name (`batchpose pipelines` lists them) or a pipeline YAML (default gnc_pose)",
+    )
     r.add_argument("--manifest", required=True, help="data manifest YAML, e.g. data_manifest/demo.yaml")
     r.add_argument("--out", required=True, help="run directory for all outputs")
     r.add_argument("--cache", help="cache of template libraries and loaded meshes (default ~/.cache/batchpose)")
@@ -118,8 +179,42 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--limit", type=int, help="process only the first N frames")
     r.set_defaults(func=_cmd_run)
 
-    c = sub.add_parser(
+
+def _add_data_commands(sub, common: argparse.ArgumentParser) -> None:
+    """``inspect``, ``init`` and ``convert``: from a recording to what ``run`` reads."""
+    i = _subcommand(
+        sub,
+        common,
+        "inspect",
+        ["batchpose inspect my_log.mcap"],
+        help="describe a log: topics, image sizes, calibration, time span, the image topic batchpose reads",
+    )
+    i.add_argument("path", help="the log to describe")
+    i.set_defaults(func=_cmd_inspect)
+
+    n = _subcommand(
+        sub,
+        common,
+        "init",
+        ["batchpose init my_log.mcap --meshes meshes/ --out my_log.yaml"],
+        help="write a commented data manifest for a log and a folder of meshes",
+    )
+    n.add_argument("log", help="the log the manifest reads")
+    n.add_argument(
+        "--meshes", required=True, help="folder of meshes (meshes/NAME.obj, .ply, .glb or NAME/textured.obj)"
+    )
+    n.add_argument("--out", required=True, help="manifest YAML to write (must not exist unless --overwrite)")
+    n.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    n.set_defaults(func=_cmd_init)
+
+    c = _subcommand(
+        sub,
+        common,
         "convert",
+        [
+            "batchpose convert my_images/ my_log.mcap --format images",
+            "batchpose convert YCB_Video_Dataset/ ycbv.mcap --format ycbv",
+        ],
         help="write a folder data set (YCB-Video, BOP, images) as an MCAP log",
         description="Write a folder data set as MCAP: /camera/image (foxglove.CompressedImage, bytes "
         "copied, never re-encoded), /camera/calibration (foxglove.CameraCalibration) and, when present, "
@@ -131,16 +226,31 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     c.set_defaults(func=_cmd_convert)
 
-    rep = sub.add_parser("report", help="(re)build RUN_DIR/report from a finished run")
+
+def _add_result_commands(sub, common: argparse.ArgumentParser) -> None:
+    """``report``, ``compare``, ``score`` and ``pipelines``."""
+    rep = _subcommand(
+        sub, common, "report", ["batchpose report runs/demo"], help="(re)build RUN_DIR/report from a finished run"
+    )
     rep.add_argument("run_dir", help="a run directory written by `batchpose run`")
     rep.set_defaults(func=_cmd_report)
 
-    cmp_ = sub.add_parser("compare", help="compare several runs side by side (table + curves)")
+    cmp_ = _subcommand(
+        sub,
+        common,
+        "compare",
+        ["batchpose compare runs/demo runs/demo_fast --out runs/compare"],
+        help="compare several runs side by side (table + curves)",
+    )
     cmp_.add_argument("run_dirs", nargs="+", help="run directories")
     cmp_.add_argument("--out", required=True, help="output directory for the comparison page")
     cmp_.set_defaults(func=_cmd_compare)
-    sc = sub.add_parser(
+
+    sc = _subcommand(
+        sub,
+        common,
         "score",
+        ["batchpose score other_method.csv runs/demo"],
         help="score any BOP-format results CSV against a run's ground truth",
         description="Score a BOP results file (scene_id,im_id,obj_id,score,R,t,time; t in mm) against the "
         "ground truth, frames and model points of a run directory: ADD(-S) AUC and 0.1 d recall per object.",
@@ -148,6 +258,40 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("csv", help="BOP-format results CSV")
     sc.add_argument("run_dir", help="run directory whose gt.parquet, frames.parquet and objects.json to use")
     sc.set_defaults(func=_cmd_score)
+
+    pl = _subcommand(
+        sub,
+        common,
+        "pipelines",
+        ["batchpose pipelines", "batchpose run --pipeline fast --manifest my_log.yaml --out runs/my_log_fast"],
+        help="list the bundled pipelines, one line each",
+    )
+    pl.set_defaults(func=_cmd_pipelines)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="batchpose",
+        description="Learning-free 6D pose (GNC-Pose) of textured objects in camera logs, on CPU, in batch.",
+        epilog=_examples(
+            "batchpose inspect my_log.mcap",
+            "batchpose init my_log.mcap --meshes meshes/ --out my_log.yaml",
+            "batchpose run --manifest my_log.yaml --out runs/my_log",
+            "batchpose COMMAND --help",
+        ),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging (before or after the command)")
+    p.add_argument(
+        "--version", action=_Version, nargs=0, help="print batchpose's version and its libraries' (for bug reports)"
+    )
+    # -v after the command too; SUPPRESS keeps a -v given before it.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_run(sub, common)
+    _add_data_commands(sub, common)
+    _add_result_commands(sub, common)
     return p
 
 

@@ -8,6 +8,8 @@ A pipeline YAML (``pipelines/*.yaml``) sets any subset of these fields; unknown 
 - :mod:`.estimator`: :class:`EstimatorConfig` (the sections plus the fields that span them) and
   :func:`validate`, with the few rules that tie two fields together.
 - :mod:`.load`: YAML, ``--set`` overrides, dict to config and back, the config hash of cache keys.
+- :mod:`.pipelines`: the bundled pipeline YAMLs by name (``resolve``, ``available``) and the Foxglove layout
+  template (``layout_template``), found alike in a checkout and in an installed wheel.
 """
 
 from batchpose.config.estimator import EstimatorConfig, validate

@@ -1,7 +1,8 @@
 """From YAML and ``--set`` overrides to a checked :class:`EstimatorConfig`, and back to plain data and a hash.
 
 Unknown keys and wrong types are errors that name the file and the dotted key (``p.yaml: gnc: unknown key
-kapa, did you mean 'gnc.kappa'? ...``, ``p.yaml: gnc.kappa: expected a number, got 'abc'``).
+kapa, did you mean 'gnc.kappa'? ...``, ``p.yaml: gnc.kappa: expected a number, got 'abc'``); a bad ``--set`` is
+blamed on ``--set`` (``--set gnc.kapa=3: unknown key gnc.kapa; did you mean gnc.kappa?``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 import yaml
 
 from batchpose.config.estimator import EstimatorConfig, validate
+from batchpose.config.rules import field_problem
 from batchpose.errors import ConfigError
 
 
@@ -112,25 +114,81 @@ def config_hash(*parts: Any) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
-def apply_overrides(data: dict, overrides: list[str]) -> dict:
-    """Apply ``a.b=value`` overrides (value parsed as YAML) to a nested dict, returning a new dict."""
+def _dotted_keys(cls: type, prefix: str = "") -> list[str]:
+    """Every dotted key of dataclass ``cls``: its sections and, inside them, their fields (``gnc``, ``gnc.kappa``)."""
+    keys = []
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        keys.append(f"{prefix}{f.name}")
+        if dataclasses.is_dataclass(hints[f.name]):
+            keys += _dotted_keys(typing.cast(type, hints[f.name]), f"{prefix}{f.name}.")
+    return keys
+
+
+def _unknown_override(item: str, key: str, schema: type, section: type, at: str) -> ConfigError:
+    """``--set gnc.kapa=3: unknown key gnc.kapa; did you mean gnc.kappa?``: the keys with the same last part
+    (``kappa=3``), else the nearest dotted key (difflib); when none is close, the keys of the section it
+    stopped in."""
+    keys = _dotted_keys(schema)
+    leaf = key.rsplit(".", 1)[-1]
+    close = [k for k in keys if k.rsplit(".", 1)[-1] == leaf][:3] or difflib.get_close_matches(
+        key, keys, n=1, cutoff=0.75
+    )
+    if close:
+        return ConfigError(f"--set {item}: unknown key {key}; did you mean {' or '.join(close)}?")
+    known = ", ".join(f.name for f in dataclasses.fields(section))
+    where = f"keys of {at}" if at else "top-level keys and sections"
+    return ConfigError(f"--set {item}: unknown key {key} ({where}: {known})")
+
+
+def _check_override(item: str, parts: list[str], value: Any, schema: type) -> None:
+    """Check one ``--set`` against ``schema`` before it is merged: the dotted key exists, the value has the
+    field's type and meets its own rules. Errors name ``--set ITEM``, not the pipeline file (rules that tie two
+    fields together are checked with the whole config)."""
+    key = ".".join(parts)
+    cls: Any = schema
+    for i, part in enumerate(parts):
+        at = ".".join(parts[:i])
+        if not dataclasses.is_dataclass(cls):
+            raise ConfigError(f"--set {item}: {at} is a value, not a section (e.g. --set {at}=...)")
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        if part not in fields:
+            raise _unknown_override(item, key, schema, typing.cast(type, cls), at)
+        field, cls = fields[part], typing.get_type_hints(cls)[part]
+    if dataclasses.is_dataclass(cls):
+        from_dict(typing.cast(type, cls), value, f"--set {item}", key)
+        return
+    problem = field_problem(key, _coerce(value, cls, f"--set {item}"), dict(field.metadata))
+    if problem:
+        raise ConfigError(f"--set {item}: {problem}")
+
+
+def apply_overrides(data: dict, overrides: list[str], schema: type = EstimatorConfig) -> dict:
+    """Apply ``a.b=value`` overrides (value parsed as YAML) to a nested dict, returning a new dict.
+
+    Each override is checked against dataclass ``schema`` first (the key exists, the value fits the field), so
+    a mistake is blamed on ``--set``, with the nearest key: ``--set gnc.kapa=3: unknown key gnc.kapa; did you
+    mean gnc.kappa?``.
+    """
     data = json.loads(json.dumps(data))  # deep copy of plain data
     for item in overrides:
         if "=" not in item:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE, e.g. gnc.kappa=3")
+            raise ConfigError(f"--set {item}: expected KEY=VALUE, e.g. gnc.kappa=3")
         key, raw = item.split("=", 1)
         try:
             value = yaml.safe_load(raw)
         except yaml.YAMLError as e:
-            raise ConfigError(f"--set {item!r}: cannot parse value: {e}") from None
-        node = data
+            msg = str(e).replace("\n", " ")
+            raise ConfigError(f"--set {item}: cannot parse value: {msg}") from None
         parts = key.strip().split(".")
         if not all(parts):
-            raise ConfigError(f"--set {item!r}: the key before '=' is empty or has an empty part, e.g. gnc.kappa=3")
+            raise ConfigError(f"--set {item}: the key before '=' is empty or has an empty part, e.g. gnc.kappa=3")
+        _check_override(item, parts, value, schema)
+        node = data
         for p in parts[:-1]:
             node = node.setdefault(p, {})
             if not isinstance(node, dict):
-                raise ConfigError(f"--set {item!r}: {p} is not a section")
+                raise ConfigError(f"--set {item}: {p} is not a section")
         node[parts[-1]] = value
     return data
 
