@@ -44,7 +44,7 @@ from batchpose.io.mcap_topics import (
     DEPTH_TOPIC,
     GT_TOPIC,
     IMAGE_TOPIC,
-    SCENE_TOPIC,
+    SCENE_TOPIC_PREFIX,
     STATUS_TOPIC,
     TF_TOPIC,
 )
@@ -538,7 +538,7 @@ def test_rectified_images_without_a_projection_matrix_are_refused(tmp_path):
     out = write_poses_mcap(
         tmp_path / "poses.mcap", _rows([T0], np.random.default_rng(0), fail=set()), {"box": _box_glb()},
         input_mcap=tmp_path / "rect.mcap", rectified=False,
-    )  # fmt: skip
+    ).path  # fmt: skip
     with open(out, "rb") as f:
         r = make_reader(f)
         assert r.get_header().profile == ""  # ROS 1's profile allows ros1 channels only; poses are protobuf
@@ -772,7 +772,7 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
     glb = _box_glb()
     rows = _rows(stamps, rng, fail={2})
     out = tmp_path / "poses.mcap"
-    assert write_poses_mcap(out, rows, {"box": glb}, input_mcap=inp) == out
+    assert write_poses_mcap(out, rows, {"box": glb}, input_mcap=inp).path == out
     assert hashlib.sha256(inp.read_bytes()).hexdigest() == digest
     assert not (tmp_path / "poses.mcap.tmp").exists()
 
@@ -783,18 +783,26 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
     with open(out, "rb") as f:
         r = make_reader(f, validate_crcs=True, decoder_factories=[DecoderFactory()])
         assert r.get_header().profile == "x-test"
-        assert {m.name: m.metadata for m in r.iter_metadata()} == {"robot": {"name": "r2"}}
+        meta = {m.name: m.metadata for m in r.iter_metadata()}
+        assert meta.pop("batchpose.export")["ros_tf"] == "true"  # the export's own options, beside the input's
+        assert meta == {"robot": {"name": "r2"}}
         assert [(a.name, a.data) for a in r.iter_attachments()] == [("calib.yaml", b"fx: 1\n")]
         new = [
             (ch.topic, m, d)
             for _, ch, m, d in r.iter_decoded_messages(
-                topics=[SCENE_TOPIC, TF_TOPIC, ANNOTATIONS_TOPIC, "/batchpose/poses/box"]
+                topics=[SCENE_TOPIC_PREFIX + "box", TF_TOPIC, ANNOTATIONS_TOPIC, "/batchpose/poses/box"]
             )
         ]
         status = [json.loads(m.data) for _, ch, m in r.iter_messages(topics=[STATUS_TOPIC])]
 
-    (scene,) = [d for t, _, d in new if t == SCENE_TOPIC]
-    (ent,) = scene.entities
+    # The mesh from the first image, deleted at the failed one, back at the next.
+    scene = [(m.log_time, d) for t, m, d in new if t == SCENE_TOPIC_PREFIX + "box"]
+    assert [(t, len(d.entities), len(d.deletions)) for t, d in scene] == [
+        (stamps[0], 1, 0),
+        (stamps[2], 0, 1),
+        (stamps[3], 1, 0),
+    ]
+    ent = scene[0][1].entities[0]
     assert (ent.frame_id, ent.id, ent.frame_locked) == ("object/box", "box", True)
     assert ent.models[0].media_type == "model/gltf-binary" and ent.models[0].data == glb
 
@@ -815,7 +823,7 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half
     for (m, ann), row in zip(anns, rows, strict=True):
         if row["status"] != "ok":
-            assert not ann.points and "box: too_few_matches (3 matches)" in ann.texts[0].text
+            assert not ann.points and ann.texts[0].text == "box too_few_matches (3 matches)"
             continue
         R = np.reshape(row["R"], (3, 3))
         uv, _ = cv2.projectPoints(
@@ -829,7 +837,7 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
         d = np.linalg.norm(got[:, None] - uv.reshape(1, -1, 2), axis=2).min(axis=1)
         assert d.max() < 1e-6
         assert ann.texts[0].timestamp.ToNanoseconds() == m.log_time - 5_000_000
-        assert ann.texts[0].text == "box 0.80" + (" (tracked)" if row["tracked"] else "")
+        assert ann.texts[0].text == "box ok 0.80" + (" tracked" if row["tracked"] else "")
     assert [o["tracked"] for st in status for o in st["objects"]] == [False, True, False, False, False]
     assert [s["n_ok"] for s in status] == [1, 1, 0, 1, 1]
     assert status[2]["objects"][0] == {
@@ -855,7 +863,7 @@ def test_write_back_from_folder_frames(tmp_path):
         "/camera/image",
         "/camera/calibration",
         "/ground_truth/poses",
-        SCENE_TOPIC,
+        SCENE_TOPIC_PREFIX + "box",
         TF_TOPIC,
         ANNOTATIONS_TOPIC,
         STATUS_TOPIC,

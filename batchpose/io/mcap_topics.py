@@ -3,36 +3,45 @@ calibration and depth topics.
 
 Topics written by batchpose (:mod:`batchpose.io.mcap_write`, :mod:`batchpose.io.mcap_poses`):
 
-================================  ==============================  ===========================================
-topic                             schema                          content
-================================  ==============================  ===========================================
-``/camera/image``                 foxglove.CompressedImage        PNG/JPEG bytes as stored (RawImage for raw)
-``/camera/calibration``           foxglove.CameraCalibration      K, R = I, P = [K | 0], D, model, size
-``/camera/depth``                 foxglove.RawImage               16UC1 depth in mm registered to the image
-                                                                  (``batchpose convert`` of data with depth)
-``/ground_truth/poses``           batchpose.GroundTruthPoses      JSON, see :data:`GT_JSON_SCHEMA`
-``/batchpose/scene``              foxglove.SceneUpdate            one message at the start: each object's
-                                                                  mesh (binary glTF) locked to
-                                                                  ``object/<name>``, lifetime forever
-``/batchpose/tf``                 foxglove.FrameTransform         camera frame -> ``object/<name>``, metres
-``/batchpose/poses/<name>``       foxglove.PosesInFrame           the object's pose in the camera frame
-``/batchpose/annotations``        foxglove.ImageAnnotations       projected 3D box, inlier points, labels
-``/batchpose/status``             batchpose.FrameStatus           JSON, see :data:`STATUS_JSON_SCHEMA`
-================================  ==============================  ===========================================
+=====================================  ==========================  ==========================================
+topic                                  schema                      content
+=====================================  ==========================  ==========================================
+``/camera/image``                      foxglove.CompressedImage    PNG/JPEG bytes as stored (RawImage for raw)
+``/camera/calibration``                foxglove.CameraCalibration  K, R = I, P = [K | 0], D, model, size
+``/camera/depth``                      foxglove.RawImage           16UC1 depth in mm registered to the image
+                                                                   (``batchpose convert`` of data with depth)
+``/ground_truth/poses``                batchpose.GroundTruthPoses  JSON, see :data:`GT_JSON_SCHEMA`
+``/batchpose/scene/<name>``            foxglove.SceneUpdate        the object's mesh (binary glTF) locked to
+                                                                   ``object/<name>`` from the image it is
+                                                                   found in; a deletion at the first image it
+                                                                   is not (see :mod:`batchpose.io.mcap_poses`)
+``/batchpose/tf``                      foxglove.FrameTransform     camera frame -> ``object/<name>``, metres
+``/batchpose/poses/<name>``            foxglove.PosesInFrame       the object's pose in the camera frame
+``/batchpose/annotations``             foxglove.ImageAnnotations   projected 3D box, inlier points, one
+                                                                   status label per object
+``/batchpose/status``                  batchpose.FrameStatus       JSON, see :data:`STATUS_JSON_SCHEMA`
+``/batchpose/ground_truth/tf``         foxglove.FrameTransform     camera frame -> ``gt/<name>`` (runs with
+                                                                   ground truth)
+``/batchpose/ground_truth/scene/<n>``  foxglove.SceneUpdate        the mesh, translucent green, at ``gt/<n>``
+``/tf``                                tf2_msgs/TFMessage          ROS logs: camera frame ->
+                                                                   ``batchpose/<name>``, the log's encoding
+=====================================  ==========================  ==========================================
 
 All batchpose messages of one image are logged at the image's log time; in-message timestamps equal the
 image's own header stamp, so Foxglove's Image panel can match annotations to the image. Within one log
 time the calibration and ground truth are written before the image.
 
 The topic choice here works on a log's topic listing (topic -> schema name, and a message count per
-topic); it imports no MCAP library.
+topic), and :func:`foxglove_layout` fills a Foxglove layout with the topics a run used; neither imports an MCAP
+library.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 from batchpose.errors import CameraError, DataError
@@ -58,8 +67,17 @@ DEPTH_UNITS_M = {
 }
 CAMERA_FRAME_ID = "camera"
 OUTPUT_PREFIX = "/batchpose/"
-SCENE_TOPIC = "/batchpose/scene"
+#: One topic per object (its mesh entity or its deletion): each message holds the object's whole state, so the
+#: last message before any time (what Foxglove reads after a seek) shows exactly what is found then.
+SCENE_TOPIC_PREFIX = "/batchpose/scene/"
 TF_TOPIC = "/batchpose/tf"
+GT_TF_TOPIC = "/batchpose/ground_truth/tf"
+GT_SCENE_TOPIC_PREFIX = "/batchpose/ground_truth/scene/"
+#: ROS logs: the estimates as tf2_msgs/TFMessage, where ROS tools read transforms.
+ROS_TF_TOPIC = "/tf"
+OBJECT_FRAME_PREFIX = "object/"
+GT_FRAME_PREFIX = "gt/"
+ROS_FRAME_PREFIX = "batchpose/"
 POSES_TOPIC_PREFIX = "/batchpose/poses/"
 ANNOTATIONS_TOPIC = "/batchpose/annotations"
 STATUS_TOPIC = "/batchpose/status"
@@ -292,3 +310,72 @@ def choose_calibration_topic(
     if count(topic) == 0:
         raise CameraError(f"{path}:{topic}: calibration topic has no messages")
     return topic
+
+
+def _panel_topics(
+    topics: Mapping[str, dict], template: Mapping[str, str], run: Mapping[str, str], scene_topics: Sequence[str]
+) -> dict[str, dict]:
+    """A panel's ``topics`` settings for the run: the template's image and calibration entries moved to the
+    run's topics (``cameraInfoTopic`` too), its scene entries replaced by ``scene_topics`` (all visible),
+    the other entries kept."""
+    out: dict[str, dict] = {}
+    for topic, settings in topics.items():
+        if topic.startswith(OUTPUT_PREFIX + "scene") or topic.startswith(OUTPUT_PREFIX + "ground_truth/scene"):
+            continue
+        settings = dict(settings)
+        if settings.get("cameraInfoTopic") == template["calibration"]:
+            settings["cameraInfoTopic"] = run["calibration"]
+        if topic == template["image"]:
+            topic = run["image"]
+        elif topic == template["calibration"]:
+            topic = run["calibration"]
+        out[topic] = settings
+    for topic in scene_topics:
+        out[topic] = {"visible": True}
+    return out
+
+
+def foxglove_layout(
+    template: Mapping, image_topic: str, calibration_topic: str, camera_frame: str, scene_topics: Sequence[str]
+) -> dict:
+    """A Foxglove layout for one run, from the template ``foxglove/layout.json``.
+
+    The template is written for ``/camera/image``, ``/camera/calibration`` and frame ``camera``; each panel
+    that shows an image (``imageMode.imageTopic``) is pointed at the run's image and calibration topics, each
+    panel that follows a frame (``followTf``) at the run's camera frame, and each panel's topic settings list
+    the run's image, calibration and scene topics (Foxglove draws a scene topic only when its panel says so).
+
+    Args:
+        template: the template layout (parsed JSON).
+        image_topic: the image topic the run read (its own, for an input log).
+        calibration_topic: that image's calibration topic.
+        camera_frame: the images' ``frame_id``.
+        scene_topics: the ``foxglove.SceneUpdate`` topics of ``poses.mcap`` (one an object, and its ground
+            truth's).
+
+    Returns:
+        The layout (JSON-ready); ``template`` is not modified.
+
+    Raises:
+        DataError: the template has no panel configurations (``configById``).
+    """
+    layout = copy.deepcopy(dict(template))
+    panels = layout.get("configById")
+    if not isinstance(panels, dict) or not panels:
+        raise DataError("Foxglove layout template: no panels (expected a configById mapping)")
+    modes = [p["imageMode"] for p in panels.values() if isinstance(p.get("imageMode"), dict)]
+    named = [m for m in modes if "imageTopic" in m]
+    was = {
+        "image": named[0]["imageTopic"] if named else IMAGE_TOPIC,
+        "calibration": named[0].get("calibrationTopic", CALIBRATION_TOPIC) if named else CALIBRATION_TOPIC,
+    }
+    run = {"image": image_topic, "calibration": calibration_topic}
+    for panel in panels.values():
+        if isinstance(panel.get("imageMode"), dict) and "imageTopic" in panel["imageMode"]:
+            panel["imageMode"]["imageTopic"] = image_topic
+            panel["imageMode"]["calibrationTopic"] = calibration_topic
+        if "followTf" in panel:
+            panel["followTf"] = camera_frame
+        if isinstance(panel.get("topics"), dict):
+            panel["topics"] = _panel_topics(panel["topics"], was, run, scene_topics)
+    return layout
