@@ -14,8 +14,10 @@ import pytest
 import trimesh
 from foxglove_schemas_protobuf.SceneEntityDeletion_pb2 import SceneEntityDeletion
 from mcap.reader import make_reader
+from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoders
 from mcap_ros1.decoder import DecoderFactory as Ros1Decoders
+from mcap_ros2._dynamic import serialize_dynamic
 from mcap_ros2.decoder import DecoderFactory as Ros2Decoders
 from mcap_ros2.writer import Writer as Ros2Writer
 from scipy.spatial.transform import Rotation
@@ -24,6 +26,7 @@ from batchpose.core.model import ObjectModel
 from batchpose.io.gltf import mesh_to_glb
 from batchpose.io.mcap_poses import write_poses_mcap
 from batchpose.io.mcap_read import McapFrameSource
+from batchpose.io.mcap_ros_tf import ROS2_TF
 from batchpose.io.sources import open_frames
 from batchpose.stages import export_mcap, ingest
 from tests.conftest import DEMO
@@ -366,3 +369,44 @@ def test_folder_frames_get_ground_truth_with_the_objects_ids(tmp_path):
     assert layout["Image!batchpose"]["imageMode"]["imageTopic"] == "/camera/image"
     assert layout["3D!batchpose"]["followTf"] == "camera"
     assert "/batchpose/ground_truth/scene/003_cracker_box" in layout["3D!batchpose"]["topics"]
+
+
+def _with_own_tf(src: Path, dst: Path, name: str, definition: str, data: bytes) -> Path:
+    """``src`` with a first message on ``/tf`` of the type ``name`` (ros2msg ``definition``, cdr bytes)."""
+    with open(src, "rb") as f, open(dst, "wb") as g:
+        w = Writer(g)
+        w.start(profile="ros2", library="test")
+        tf = w.register_channel("/tf", "cdr", w.register_schema(name, "ros2msg", definition.encode()))
+        w.add_message(tf, log_time=T0 - 5, data=data, publish_time=T0 - 5)
+        ids: dict[str, int] = {}
+        for s, ch, m in make_reader(f).iter_messages():
+            if ch.topic not in ids:
+                ids[ch.topic] = w.register_channel(ch.topic, "cdr", w.register_schema(s.name, s.encoding, s.data))
+            w.add_message(ids[ch.topic], log_time=m.log_time, data=m.data, publish_time=m.publish_time)
+        w.finish()
+    return dst
+
+
+def test_a_log_with_its_own_tf_gets_the_poses_on_that_channel(tmp_path, caplog):
+    stamps = [T0 + i * DT for i in range(2)]
+    rows = plan_rows(stamps, {"box": ["ok", "ok"]})
+    plain = ros2_log(tmp_path / "plain.mcap", n=2)
+    transform = {"translation": {"x": 0.0, "y": 0.0, "z": 1.0}, "rotation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+    robot_tf = {"transforms": [{"header": _header(T0, "base_link"), "child_frame_id": OPTICAL, "transform": transform}]}
+    tf_type = "tf2_msgs/msg/TFMessage"
+    data = serialize_dynamic(tf_type, ROS2_TF)[tf_type](robot_tf)
+    # The robot's own tf2 /tf: the poses go on that channel, after its message.
+    out = tmp_path / "poses.mcap"
+    write_poses_mcap(out, rows, {}, input_mcap=_with_own_tf(plain, tmp_path / "tf.mcap", tf_type, ROS2_TF, data))
+    with open(out, "rb") as f:
+        assert [c.topic for c in make_reader(f).get_summary().channels.values()].count("/tf") == 1
+    tf_msgs = [m for m in _messages(out, [Ros2Decoders()]) if m[0] == "/tf"]
+    assert [m[1] for m in tf_msgs] == [T0 - 5, *stamps] and tf_msgs[0][6] == data
+    assert tf_msgs[0][7].transforms[0].header.frame_id == "base_link"
+    _assert_tf(tf_msgs[1:], rows, OPTICAL, lambda s: s.sec * 1_000_000_000 + s.nanosec)
+    # A /tf of another type is left as it was, with a warning.
+    other = _with_own_tf(plain, tmp_path / "other.mcap", "my_msgs/msg/Tf", "string data\n", bytes(12))
+    with caplog.at_level(logging.WARNING, logger="batchpose"):
+        write_poses_mcap(out, rows, {}, input_mcap=other)
+    assert [m[1] for m in _messages(out) if m[0] == "/tf"] == [T0 - 5]
+    assert "/tf is my_msgs/msg/Tf (cdr) in the input log, not tf2_msgs/msg/TFMessage" in caplog.text

@@ -21,7 +21,7 @@ log = logging.getLogger("batchpose")
 
 _SEP = "=" * 80 + "\n"
 #: Concatenated message definitions (the form MCAP's ros2msg / ros1msg schemas hold).
-_ROS2_TF = (
+ROS2_TF = (
     "geometry_msgs/TransformStamped[] transforms\n"
     f"{_SEP}MSG: geometry_msgs/TransformStamped\n"
     "std_msgs/Header header\nstring child_frame_id\ngeometry_msgs/Transform transform\n"
@@ -31,7 +31,7 @@ _ROS2_TF = (
     f"{_SEP}MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
     f"{_SEP}MSG: geometry_msgs/Quaternion\nfloat64 x\nfloat64 y\nfloat64 z\nfloat64 w\n"
 )
-_ROS1_TF = (
+ROS1_TF = (
     "geometry_msgs/TransformStamped[] transforms\n"
     f"{_SEP}MSG: geometry_msgs/TransformStamped\nHeader header\nstring child_frame_id\nTransform transform\n"
     f"{_SEP}MSG: std_msgs/Header\nuint32 seq\ntime stamp\nstring frame_id\n"
@@ -41,8 +41,8 @@ _ROS1_TF = (
 )
 #: message encoding -> (schema name, schema encoding, definition).
 _SCHEMAS = {
-    "cdr": ("tf2_msgs/msg/TFMessage", "ros2msg", _ROS2_TF),
-    "ros1": ("tf2_msgs/TFMessage", "ros1msg", _ROS1_TF),
+    "cdr": ("tf2_msgs/msg/TFMessage", "ros2msg", ROS2_TF),
+    "ros1": ("tf2_msgs/TFMessage", "ros1msg", ROS1_TF),
 }
 
 
