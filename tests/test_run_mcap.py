@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -125,7 +126,11 @@ def test_run_on_a_ros1_bayer_log(tmp_path, cache_dir):
     log_path = _rewritten(_demo_log(tmp_path), tmp_path / "ros1.mcap", _as_ros1_bayer, profile="ros1")
     inp, outp = _run_keeps_the_log_and_finds_the_gelatin_box(tmp_path, log_path, cache_dir)
     assert inp == {"/camera/image_raw", "/camera/camera_info", "/ground_truth/poses"}
-    assert "/batchpose/tf" in outp
+    assert {"/batchpose/tf", "/tf"} <= outp  # a ROS log gets the poses on /tf too
+    layout = json.loads((tmp_path / "run" / "foxglove_layout.json").read_text())["configById"]
+    assert layout["Image!batchpose"]["imageMode"]["imageTopic"] == "/camera/image_raw"
+    assert layout["Image!batchpose"]["imageMode"]["calibrationTopic"] == "/camera/camera_info"
+    assert layout["3D!batchpose"]["followTf"] == "cam"  # the ROS 1 header's frame_id
 
 
 @pytest.mark.slow
