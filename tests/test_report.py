@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import base64
+import fcntl
 import json
 import math
 import os
 import re
+import select
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -21,7 +24,8 @@ import yaml
 
 from batchpose.core.poses import PoseRecord
 from batchpose.errors import DataError, MeshError
-from batchpose.report import figures, overlays, runs
+from batchpose.report import figures, overlays, runs, scoring
+from batchpose.report import html as report_html
 from batchpose.stages import report as report_stage
 
 W, H = 160, 120
@@ -66,10 +70,14 @@ def make_run(
     shift_mm: float = 10.0,
     turn_b_deg: float = 0.0,
     model_scale: float = 1.0,
+    wrong_b_mm: float = 0.0,
 ) -> Path:
     """Write a run directory in the pipeline's layout (4 frames, 2 objects).
 
-    ``turn_b_deg`` turns obj_b's estimates about its x axis; ``model_scale`` multiplies the coordinates of
+    ``turn_b_deg`` turns obj_b's estimates about its x axis; ``wrong_b_mm`` moves obj_b's (ok) estimate in
+    f001 that far from the camera (300: ADD-S > 0.19 m, since two copies of a convex object 0.106 m across
+    moved 0.3 m apart are at least 0.194 m apart, so the pose is wrong however the box is turned);
+    ``model_scale`` multiplies the coordinates of
     obj_a's points file and obj_b's mesh (1000: millimetre files), while objects.json keeps the metre
     diameters, as ``batchpose run`` writes them after converting a millimetre mesh.
     """
@@ -122,7 +130,9 @@ def make_run(
         ]
     )
     frames.to_parquet(run / "frames.parquet")
-    if with_gt:
+    if not with_gt:  # what ingest writes for a data set without ground truth: an empty table
+        pd.DataFrame(columns=["frame_id", "obj_name", "obj_id", "R", "t_m"]).to_parquet(run / "gt.parquet")
+    else:
         gt = pd.DataFrame(
             [
                 {
@@ -168,15 +178,16 @@ def make_run(
             recs.append(
                 PoseRecord(fid, "obj_a", "too_few_matches", reason="4 matches < 6", obj_id=1, n_matches=4, **common)
             )
-        # obj_b: exact three times, no row at all for the last frame.
+        # obj_b: exact three times (f001 moved away by wrong_b_mm), no row at all for the last frame.
         if k < 3:
+            away = _T(np.eye(3), [0.0, 0.0, wrong_b_mm / 1000.0 if k == 1 else 0.0])
             recs.append(
                 PoseRecord(
                     fid,
                     "obj_b",
                     "ok",
                     obj_id=2,
-                    cam_from_model=_gt_pose("obj_b", k) @ _T(_rot(0, turn_b_deg), [0.0, 0.0, 0.0]),
+                    cam_from_model=away @ _gt_pose("obj_b", k) @ _T(_rot(0, turn_b_deg), [0.0, 0.0, 0.0]),
                     confidence=0.8,
                     n_matches=60,
                     n_inliers=30,
@@ -194,18 +205,20 @@ def make_run(
         "root": str(frames_root or img_dir),
         "intrinsics": str(img_dir / "intrinsics.yaml"),
     }
-    (run / "manifest.yaml").write_text(yaml.safe_dump({"frames": spec, "objects": sorted(objects)}))
+    manifest = {"name": "synthetic boxes", "frames": spec, "objects": sorted(objects)}
+    (run / "manifest.yaml").write_text(yaml.safe_dump(manifest))
     return run
 
 
 def _imgs(html: str) -> dict[str, str]:
-    """id -> base64 payload of every <img> (asserting each has an alt)."""
+    """id -> base64 payload of every <img> (asserting each has an alt): plots inline PNG, overlays JPEG."""
     out = {}
     for tag in re.findall(r"<img\b[^>]*>", html):
         id_ = re.search(r'\bid="([^"]+)"', tag)
         assert id_ and re.search(r'\balt="[^"]+"', tag), tag[:120]
-        src = re.search(r'\bsrc="data:image/png;base64,([^"]*)"', tag)
-        assert src, f"{id_.group(1)}: not an inline PNG"
+        kind = "jpeg" if id_.group(1).startswith("overlay-") else "png"
+        src = re.search(rf'\bsrc="data:image/{kind};base64,([^"]*)"', tag)
+        assert src, f"{id_.group(1)}: not an inline {kind}"
         out[id_.group(1)] = src.group(1)
     return out
 
@@ -218,8 +231,15 @@ def _decodes(b64: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def report(tmp_path_factory) -> Path:
-    run = make_run(tmp_path_factory.mktemp("report"))
+    """The report of a run with ground truth: one of its 6 ok poses wrong (obj_b in f001, 300 mm away)."""
+    run = make_run(tmp_path_factory.mktemp("report"), wrong_b_mm=300.0)
     return report_stage.main(None, None, run)
+
+
+@pytest.fixture(scope="module")
+def report_nogt(tmp_path_factory) -> Path:
+    """The report of the same run without ground truth (an empty gt.parquet, as ingest writes it)."""
+    return report_stage.main(None, None, make_run(tmp_path_factory.mktemp("nogt"), with_gt=False))
 
 
 def test_summary_csv(report):
@@ -227,16 +247,23 @@ def test_summary_csv(report):
     assert list(s.index) == ["obj_a", "obj_b", "mean", "pooled"]
     # obj_a ADD: d = [0, 0, .01, inf] (n = 4): rec = [0, 0, 0, .01, .1], prec = [0, .25, .5, .75, .75]
     #   -> (.01*.75 + .09*.75)/.1*100 = 75. Its ADD-S (<= 10 mm) gives 75 too: the area only depends on
-    #   the accuracy .75 reached at any distance below 0.1. obj_b: d = [0, 0, 0, inf] -> 75.
-    for obj in ("obj_a", "obj_b", "mean", "pooled"):
-        assert s.loc[obj, "add_auc"] == pytest.approx(75.0)
-        assert s.loc[obj, "adds_auc"] == pytest.approx(75.0)
+    #   the accuracy .75 reached at any distance below 0.1. obj_b: d = [0, >.19, 0, inf] -> 50 (ADD .3 m and
+    #   ADD-S > .19 m are beyond the curve's 0.1 m). Pooled: 5 of 8 below 0.1 m -> 62.5.
+    for obj, auc in (("obj_a", 75.0), ("obj_b", 50.0), ("mean", 62.5), ("pooled", 62.5)):
+        assert s.loc[obj, "add_auc"] == pytest.approx(auc)
+        assert s.loc[obj, "adds_auc"] == pytest.approx(auc)
     # 0.1 d of obj_a is 12.3 mm, so the 10 mm shift passes: 3 / 4.
     assert s.loc["obj_a", "add_recall_01d"] == pytest.approx(75.0)
     assert s.loc["obj_a", "median_trans_err_mm"] == pytest.approx(0.0, abs=1e-9)  # median of 0, 0, 10
     assert s.loc["obj_a", "n_too_few_matches"] == 1 and s.loc["obj_b", "n_missing"] == 1
     assert s.loc["pooled", "n"] == 8 and s.loc["pooled", "n_ok"] == 6
     assert s.loc["obj_a", "paper_adds_auc"] != s.loc["obj_a", "paper_adds_auc"]  # NaN: not a paper object
+    # The verdict's counts of estimated (frame, object) pairs: obj_b's f003 has no row, so it is no pair.
+    pairs = s[["n_pairs", "n_pairs_ok", "n_ok_wrong", "n_pairs_failed"]]
+    assert pairs.loc["obj_a"].tolist() == [4, 3, 0, 1]
+    assert pairs.loc["obj_b"].tolist() == [3, 3, 1, 0]
+    assert pairs.loc["pooled"].tolist() == pairs.loc["mean"].tolist() == [7, 6, 1, 1]
+    assert list(s.columns[:5]) == ["n_pairs", "n_pairs_ok", "n_ok_wrong", "n_pairs_failed", "n"]
 
 
 def test_frames_csv(report):
@@ -251,6 +278,13 @@ def test_frames_csv(report):
     assert list(a["im_id"]) == [0, 1, 2, 3]
     b = f[f["obj_name"] == "obj_b"].set_index("frame_id")
     assert b.loc["f003", "status"] == "missing"
+    assert b.loc["f001", "status"] == "ok" and b.loc["f001", "add_m"] == pytest.approx(0.3)
+    assert b.loc["f001", "adds_m"] > 0.19
+
+
+def _near(img: np.ndarray, bgr: tuple[int, int, int], tol: int = 40) -> int:
+    """Pixels of a (JPEG) BGR image within ``tol`` of a colour in every channel."""
+    return int(np.all(np.abs(img.astype(int) - bgr) <= tol, axis=2).sum())
 
 
 def test_html_content(report):
@@ -258,29 +292,36 @@ def test_html_content(report):
     assert 'id="results-table"' in html
     assert "reported by the paper on a different test set" in html
     assert not re.search(r"<script|<link|\b(src|href)=\"https?:", html)  # self-contained
+    assert "<title>synthetic boxes</title>" in html and "<h1>synthetic boxes</h1>" in html  # the manifest's name
+    # Provenance is collapsed; the verdict comes before every section.
+    for part in ("objects", "versions", "manifest", "config"):
+        assert re.search(rf'<details id="details-{part}"><summary>', html), part
+    assert html.index('id="verdict"') < html.index("<section")
     imgs = _imgs(html)
-    for id_ in ("plot-curve-adds", "plot-curve-add", "plot-errors", "plot-confidence"):
+    for id_ in ("plot-curve-adds", "plot-curve-add", "plot-errors", "plot-confidence", "plot-values"):
         assert _decodes(imgs[id_]).shape[1] >= 500
-    if HAVE_DATASETS:
-        # 6 ok instances: best 4, worst 2; failures (too_few_matches, missing) show ground truth only.
-        overlays = sorted(k for k in imgs if k.startswith("overlay-"))
-        assert overlays == [
-            "overlay-best-1",
-            "overlay-best-2",
-            "overlay-best-3",
-            "overlay-best-4",
-            "overlay-failed-1",
-            "overlay-failed-2",
-            "overlay-worst-1",
-            "overlay-worst-2",
-        ]
-        worst = _decodes(imgs["overlay-worst-1"])
-        assert worst.shape[0] == 200 and abs(worst.shape[1] - 267) <= 2  # 4:3 crop
-        # Both colours are drawn: ground truth green and the 10 mm-off estimate orange (BGR here).
-        assert np.any(np.all(worst == (60, 200, 40), axis=2)) and np.any(np.all(worst == (0, 140, 255), axis=2))
-        assert "gallery-note" not in html
-    else:
+    if not HAVE_DATASETS:
         assert 'id="gallery-note"' in html
+        return
+    # 6 ok instances: the worse half (3) is "worst", the others "best"; failures (too few matches, no
+    # estimate) show ground truth only. Worst first, each object's worst before a second case of an object.
+    overlays = [k for k in imgs if k.startswith("overlay-") and not k.endswith("-full")]
+    assert overlays == [
+        f"overlay-{g}-{i}" for g, n in (("worst", 3), ("failed", 2), ("best", 3)) for i in range(1, n + 1)
+    ]
+    titles = re.findall(r"<figcaption><b>([^<]+)</b><br>([^<]+)</figcaption>", html)
+    assert titles[0][0] == "f001 · obj_b" and "wrong" in titles[0][1]  # the wrong pose leads
+    assert titles[1][0] == "f002 · obj_a"  # obj_a's worst (10 mm), before a second obj_b case
+    assert {t for t, _ in titles[3:5]} == {"f003 · obj_a", "f003 · obj_b"}
+    assert "too few matches: 4 matches &lt; 6 (ground truth only)" in html
+    for k in overlays:  # a JPEG thumbnail, and its full-size JPEG in a lightbox the thumbnail links to
+        assert _decodes(imgs[k]).shape[0] == 240 and _decodes(imgs[f"{k}-full"]).shape[0] >= 480
+        assert f'<a class="thumb" href="#full-{k}">' in html and f'<div class="lightbox" id="full-{k}">' in html
+    worst = _decodes(imgs["overlay-worst-2"])  # obj_a, 10 mm off: both poses in the crop
+    assert abs(worst.shape[1] - 320) <= 2  # 4:3 crop
+    # Both colours are drawn: ground truth green and the estimate orange (BGR here; JPEG: nearly).
+    assert _near(worst, (60, 200, 40)) > 50 and _near(worst, (0, 140, 255)) > 50
+    assert "gallery-note" not in html
 
 
 def test_overlay_draws_at_projected_pose():
@@ -290,22 +331,41 @@ def test_overlay_draws_at_projected_pose():
     assert img.shape[0] == H and img[..., 0].max() == 255 and img[..., 1].max() == 0
 
 
-def test_report_without_ground_truth(tmp_path):
-    run = make_run(tmp_path, with_gt=False)
-    out = report_stage.main(None, None, run)
+#: What a reader of a report without ground truth must not see (summary.csv's raw names, raw statuses).
+RAW_NAMES = ("n_too_few_matches", "too_few_matches", "detection_rate_pct", "median_confidence", "obj_name", "n_ok")
+
+
+def test_report_without_ground_truth(report_nogt):
+    out = report_nogt
     s = pd.read_csv(out / "summary.csv").set_index("obj_name")
     # obj_a: 3 ok of 4 rows; obj_b: 3 of 3 (its missing frame has no row); all: 6 / 7.
     assert s.loc["obj_a", "detection_rate_pct"] == pytest.approx(75.0)
     assert s.loc["obj_b", "detection_rate_pct"] == pytest.approx(100.0)
     assert s.loc["all", "detection_rate_pct"] == pytest.approx(600 / 7)
     assert s.loc["obj_a", "median_confidence"] == pytest.approx(0.7)
+    assert s.loc["all", ["n_pairs", "n_pairs_ok", "n_pairs_failed"]].tolist() == [7, 6, 1]
+    assert "n_ok_wrong" not in s.columns  # no ground truth: no pose is called wrong
     assert len(pd.read_csv(out / "frames.csv")) == 7
     html = (out / "index.html").read_text()
     imgs = _imgs(html)
     assert "plot-confidence" in imgs and 'id="results-table"' in html
+    # Readable labels: headers and statuses in words, none of summary.csv's column names.
+    header = re.search(r'<table id="results-table"><thead><tr>(.*?)</tr>', html).group(1)
+    assert re.findall(r"<th>([^<]*)</th>", header) == [
+        "Object",
+        "pairs",
+        "ok",
+        "detection rate (%)",
+        "median confidence (ok)",
+        "too few matches",
+    ]
+    assert "<td>all objects</td>" in html
+    assert 'id="verdict-failed-kinds">(not found 1: too few matches 1)' in html
+    for raw in RAW_NAMES:
+        assert raw not in html, raw
     if HAVE_DATASETS:
-        assert sum(k.startswith("overlay-most-confident") for k in imgs) == 4
-        assert sum(k.startswith("overlay-least-confident") for k in imgs) == 2
+        assert sum(k.startswith("overlay-least-confident") and not k.endswith("-full") for k in imgs) == 3
+        assert sum(k.startswith("overlay-most-confident") and not k.endswith("-full") for k in imgs) == 3
 
 
 def test_gallery_failure_is_explained(tmp_path):
@@ -497,50 +557,184 @@ def chromium() -> str:
     return browser
 
 
-def _run_browser(browser: str, tmp: Path, *args: str) -> subprocess.CompletedProcess:
-    flags = [
-        "--headless",
-        "--no-sandbox",
-        "--disable-gpu",
-        "--disable-quic",
-        "--no-first-run",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--disable-dev-shm-usage",
-        f"--user-data-dir={tmp / 'profile'}",
-        "--enable-logging=stderr",
-        "--v=0",
-    ]
-    return subprocess.run([browser, *flags, *args], check=False, capture_output=True, text=True, timeout=180)
+class Browser:
+    """Headless Chromium driven over the DevTools protocol on a pipe (``--remote-debugging-pipe``: fd 3 in,
+    fd 4 out, NUL-separated JSON): real page loads, clicks and screenshots, without network or extra packages."""
+
+    def __init__(self, executable: str, profile: Path, width: int = 1280, height: int = 800):
+        to_child, self._out = os.pipe()
+        self._in, from_child = os.pipe()
+
+        def pipes_as_fd_3_and_4():  # (in the child, before exec)
+            a, b = fcntl.fcntl(to_child, fcntl.F_DUPFD, 10), fcntl.fcntl(from_child, fcntl.F_DUPFD, 10)
+            os.dup2(a, 3)
+            os.dup2(b, 4)
+
+        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--remote-debugging-pipe", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--disable-dev-shm-usage", "--hide-scrollbars", f"--user-data-dir={profile}"]  # fmt: skip
+        self.proc = subprocess.Popen(
+            [executable, *flags, "about:blank"],
+            preexec_fn=pipes_as_fd_3_and_4,
+            close_fds=False,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        os.close(to_child)
+        os.close(from_child)
+        self._buf, self._id, self.events = b"", 0, []
+        target = self.call("Target.createTarget", url="about:blank")["targetId"]
+        self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        for domain in ("Page", "Runtime", "Log"):
+            self.call(f"{domain}.enable", page=True)
+        self.call("Emulation.setDeviceMetricsOverride", page=True, width=width, height=height,
+                  deviceScaleFactor=1, mobile=False)  # fmt: skip
+
+    def _message(self, deadline: float) -> dict:
+        while b"\0" not in self._buf:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([self._in], [], [], left)[0]:
+                raise TimeoutError("no answer from the browser")
+            chunk = os.read(self._in, 1 << 20)
+            if not chunk:
+                raise EOFError("the browser closed its pipe")
+            self._buf += chunk
+        msg, self._buf = self._buf.split(b"\0", 1)
+        return json.loads(msg)
+
+    def call(self, method: str, page: bool = False, timeout: float = 60, **params) -> dict:
+        self._id += 1
+        msg = {"id": self._id, "method": method, "params": params, **({"sessionId": self.session} if page else {})}
+        os.write(self._out, json.dumps(msg).encode() + b"\0")
+        deadline = time.monotonic() + timeout
+        while True:
+            answer = self._message(deadline)
+            if answer.get("id") == self._id:
+                assert "error" not in answer, f"{method}: {answer['error']}"
+                return answer["result"]
+            self.events.append(answer)
+
+    def wait_for(self, event: str, timeout: float = 60) -> dict:
+        deadline = time.monotonic() + timeout
+        while not any(e.get("method") == event for e in self.events):
+            self.events.append(self._message(deadline))
+        return self.events.pop(next(i for i, e in enumerate(self.events) if e.get("method") == event))
+
+    def open(self, url: str) -> None:
+        self.call("Page.navigate", page=True, url=url)
+        self.wait_for("Page.loadEventFired")
+
+    def js(self, expression: str):
+        result = self.call("Runtime.evaluate", page=True, expression=expression, returnByValue=True)
+        assert "exceptionDetails" not in result, result
+        return result["result"].get("value")
+
+    def click(self, x: float, y: float) -> None:
+        for kind in ("mousePressed", "mouseReleased"):
+            self.call("Input.dispatchMouseEvent", page=True, type=kind, x=x, y=y, button="left", clickCount=1)
+
+    def screenshot(self, path: Path) -> np.ndarray:
+        path.write_bytes(base64.b64decode(self.call("Page.captureScreenshot", page=True, format="png")["data"]))
+        return cv2.imread(str(path))
+
+    def errors(self) -> list[str]:
+        """Console errors, uncaught exceptions and browser log errors (blocked loads) so far."""
+        out = [e["params"]["entry"]["text"] for e in self.events if e.get("method") == "Log.entryAdded"
+               and e["params"]["entry"]["level"] == "error"]  # fmt: skip
+        out += [str(e["params"]) for e in self.events if e.get("method") == "Runtime.exceptionThrown"]
+        return out + [str(e["params"]["args"]) for e in self.events
+                      if e.get("method") == "Runtime.consoleAPICalled" and e["params"]["type"] == "error"]  # fmt: skip
+
+    def close(self) -> None:
+        try:
+            self.call("Browser.close", timeout=10)
+        except (TimeoutError, EOFError, AssertionError):
+            pass
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        os.close(self._in)
+        os.close(self._out)
 
 
-def _console_errors(stderr: str) -> list[str]:
-    return [ln for ln in stderr.splitlines() if ":CONSOLE" in ln or "Uncaught" in ln]
+@pytest.fixture(scope="module")
+def browser(chromium, tmp_path_factory):
+    b = Browser(chromium, tmp_path_factory.mktemp("chromium") / "profile")
+    yield b
+    b.close()
+
+
+def _first_screen(browser: Browser, name: str, tmp_path: Path) -> np.ndarray:
+    """The page's first screen (1280 x 800), kept in $BATCHPOSE_SCREENSHOT_DIR when that is set."""
+    shot = browser.screenshot(tmp_path / name)
+    if os.environ.get("BATCHPOSE_SCREENSHOT_DIR"):
+        shutil.copy(tmp_path / name, Path(os.environ["BATCHPOSE_SCREENSHOT_DIR"]) / name)
+    assert shot.shape[:2] == (800, 1280) and shot.std() > 20, "screenshot looks blank"
+    return shot
 
 
 @pytest.mark.slow
-def test_report_in_browser(report, chromium, tmp_path):
-    url = (report / "index.html").resolve().as_uri()
-    dom = _run_browser(chromium, tmp_path, "--dump-dom", url)
-    assert dom.returncode == 0, dom.stderr[-2000:]
-    assert not _console_errors(dom.stderr)
-    assert '<table id="results-table"' in dom.stdout
-    imgs = _imgs(dom.stdout)  # the parsed DOM: every image kept its id, alt and inline PNG
-    assert {"plot-curve-adds", "plot-curve-add", "plot-errors", "plot-confidence"} <= set(imgs)
-    assert all(len(b64) > 1000 for b64 in imgs.values())
+def test_report_in_browser(report, browser, tmp_path):
+    browser.open((report / "index.html").resolve().as_uri())
+    assert browser.js("document.title") == "synthetic boxes"
+    # The verdict, first on the page, counts what poses.parquet holds; obj_b in f001 is the one wrong pose.
+    poses = pd.read_parquet(report.parent / "poses.parquet")
+    frames = pd.read_csv(report / "frames.csv")
+    pooled = pd.read_csv(report / "summary.csv").set_index("obj_name").loc["pooled"]
+    ok = frames[frames["status"] == "ok"]
+    n_wrong = int((ok["adds_m"] > 0.1 * ok["diameter_m"]).sum())
+    shown = browser.js(
+        "Object.fromEntries(['pairs', 'ok', 'wrong', 'failed', 'adds-auc', 'add-auc'].map("
+        "k => [k, document.getElementById('verdict-' + k).textContent]))"
+    )
+    assert shown == {
+        "pairs": str(len(poses)),
+        "ok": str(int((poses["status"] == "ok").sum())),
+        "wrong": str(n_wrong),
+        "failed": str(int((poses["status"] != "ok").sum())),
+        "adds-auc": f"{pooled['adds_auc']:.1f}",
+        "add-auc": f"{pooled['add_auc']:.1f}",
+    }
+    assert n_wrong == 1 and shown["pairs"] == "7" and shown["failed"] == "1"
+    assert browser.js("document.getElementById('verdict').getBoundingClientRect().bottom") < 400  # first screen
+    assert "(not found 1: too few matches 1)" in browser.js("document.getElementById('verdict').textContent")
+    assert browser.js("[...document.querySelectorAll('details')].every(d => !d.open)")  # provenance collapsed
+    assert browser.js("[...document.images].every(i => i.complete && i.naturalWidth > 0)")  # all decode
+    shot = _first_screen(browser, "report-gt.png", tmp_path)
+    assert (shot.mean(axis=2) < 200).mean() > 0.01  # text and tables, not just white
+    if not HAVE_DATASETS:
+        return
+    # Clicking an overlay opens its full-size image over the page; clicking that closes it.
+    thumb = "document.getElementById('overlay-worst-1')"
+    x, y = browser.js(f"(() => {{ {thumb}.scrollIntoView({{block: 'center'}}); const r = {thumb}"
+                      ".getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()")  # fmt: skip
+    assert browser.js("getComputedStyle(document.getElementById('full-overlay-worst-1')).display") == "none"
+    browser.click(x, y)
+    assert browser.js("location.hash") == "#full-overlay-worst-1"
+    full = "document.getElementById('overlay-worst-1-full')"
+    assert browser.js(f"document.elementFromPoint(640, 400) === {full}")  # the full image covers the screen
+    size = browser.js(f"[{full}.naturalHeight, {thumb}.naturalHeight, {full}.getBoundingClientRect().height]")
+    assert size[0] >= 480 and size[1] == 240 and size[2] >= 1.9 * size[1]  # shown twice the thumbnail's size
+    browser.click(640, 400)
+    assert browser.js("getComputedStyle(document.getElementById('full-overlay-worst-1')).display") == "none"
+    assert not browser.errors()
 
-    shot = tmp_path / "report.png"
-    res = _run_browser(chromium, tmp_path, f"--screenshot={shot}", "--window-size=1280,2600", "--hide-scrollbars", url)
-    assert res.returncode == 0 and shot.is_file(), res.stderr[-2000:]
-    assert not _console_errors(res.stderr)
-    img = cv2.imread(str(shot))
-    assert img.shape[:2] == (2600, 1280)
-    assert img.std() > 20, "screenshot looks blank"
-    # The page is not just white: plots fill a good part of it.
-    assert (img.mean(axis=2) < 200).mean() > 0.02
-    if os.environ.get("BATCHPOSE_KEEP_SCREENSHOT"):
-        shutil.copy(shot, os.environ["BATCHPOSE_KEEP_SCREENSHOT"])
+
+@pytest.mark.slow
+def test_report_without_ground_truth_in_browser(report_nogt, browser, tmp_path):
+    browser.open((report_nogt / "index.html").resolve().as_uri())
+    text = browser.js("document.body.innerText")  # what a reader sees (collapsed sections excluded)
+    columns = [c for c in pd.read_csv(report_nogt / "summary.csv").columns if "_" in c]  # not "n"
+    for raw in (*RAW_NAMES, *columns):
+        assert raw not in text, raw
+    for label in ("too few matches", "detection rate (%)", "all objects", "No ground truth"):
+        assert label in text, label
+    assert browser.js("document.getElementById('verdict-wrong')") is None
+    assert browser.js("document.getElementById('verdict-pairs').textContent") == "7"
+    _first_screen(browser, "report-nogt.png", tmp_path)
+    assert not browser.errors()
 
 
 def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
@@ -570,9 +764,86 @@ def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
     np.testing.assert_array_equal(grid, [[1, 4], [3, -1]])
 
 
-def test_timeline_section_in_both_reports(report, tmp_path):
-    assert "plot-timeline" in _imgs((report / "index.html").read_text())
-    out = report_stage.main(None, None, make_run(tmp_path, with_gt=False))
-    html = (out / "index.html").read_text()
-    assert 'id="timeline"' in html and "confidence of the ok poses" in html
+def test_timeline_section_in_both_reports(report, report_nogt):
+    assert {"plot-timeline", "plot-values"} <= set(_imgs((report / "index.html").read_text()))
+    html = (report_nogt / "index.html").read_text()
+    assert 'id="timeline"' in html and "confidence of its ok poses" in html
+    # Separate image files: the axis is the frames' order, not seconds.
+    assert "so the axis is their order in the run." in html
     assert _decodes(_imgs(html)["plot-timeline"]).shape[1] >= 900
+
+
+def test_time_axis_is_log_time_only_for_one_log():
+    poses = pd.DataFrame({"frame_id": ["a", "b", "c", "c", "d"]})
+    one_log = pd.DataFrame(
+        {
+            "frame_id": ["a", "b", "c", "d"],
+            "stamp_ns": [5_000_000_000, 5_500_000_000, 7_000_000_000, 7_100_000_000],
+            "scene_id": [0, 0, 0, 0],
+            "source": ["log.mcap:/camera/image"] * 4,
+        }
+    )
+    axis = figures.time_axis(poses, one_log)
+    assert axis.log_time and axis.breaks == [] and axis.n_frames == 4
+    np.testing.assert_allclose(axis.x, [0.0, 0.5, 2.0, 2.0, 2.1])
+    # Image files of two scenes, with invented stamps: frame order, the second scene's start marked.
+    folders = one_log.assign(scene_id=[0, 0, 3, 3], source=[f"/data/{f}.png" for f in "abcd"])
+    axis = figures.time_axis(poses, folders)
+    assert not axis.log_time and axis.breaks == [(0.0, "scene 0"), (2.0, "scene 3")]
+    np.testing.assert_allclose(axis.x, [0, 1, 2, 2, 3])
+    # One source but stamps going back (a second pass over the log): frame order too.
+    assert not figures.time_axis(poses, one_log.assign(stamp_ns=[3, 4, 1, 2])).log_time
+    # Without frames.parquet: the poses' frames in order of first appearance.
+    np.testing.assert_allclose(figures.time_axis(poses, None).x, [0, 1, 2, 2, 3])
+    assert figures.time_axis(poses.iloc[:1], None) is None
+
+
+def test_spread_shows_each_object_then_new_frames():
+    rows = pd.DataFrame(
+        {"frame_id": ["f1", "f2", "f3", "f1", "f4", "f2"], "obj_name": ["a", "a", "a", "b", "a", "c"]},
+        index=[10, 11, 12, 13, 14, 15],
+    )
+    assert overlays.spread(rows, 3).index.tolist() == [10, 13, 15]  # each object's first
+    assert overlays.spread(rows, 5).index.tolist() == [10, 13, 15, 12, 14]  # then frames not shown
+    assert overlays.spread(rows, 9).index.tolist() == [10, 13, 15, 12, 14, 11]  # then the rest
+    assert overlays.spread(rows.iloc[:0], 3).empty
+
+
+def test_verdict_counts_pairs_and_groups_failures():
+    poses = pd.DataFrame(
+        {
+            "frame_id": ["f0", "f0", "f1", "f1", "f2", "f2", "f2", "f3"],
+            "obj_name": ["a", "b", "a", "b", "a", "b", "b", "a"],
+            "status": ["ok", "ok", "ok", "hidden", "too_few_matches", "pnp_failed", "ok", "weird_new"],
+            "confidence": [0.9, 0.8, 0.7, 0.0, 0.0, 0.0, 0.6, 0.0],
+        }
+    )
+    # b in f2 has a failed and an ok row: one pair, ok (the scored row). a in f1 is wrong (ADD-S > 0.1 d).
+    per_instance = pd.DataFrame(
+        {
+            "frame_id": ["f0", "f0", "f1", "f2", "f9"],
+            "obj_name": ["a", "b", "a", "b", "a"],
+            "status": ["ok", "ok", "ok", "ok", "missing"],
+            "adds_m": [0.001, 0.002, 0.05, 0.01, np.inf],
+            "diameter_m": [0.2, 0.1, 0.2, 0.1, 0.2],
+        }
+    )
+    pairs = scoring.pair_table(poses, per_instance)
+    assert len(pairs) == 7 and pairs["wrong"].tolist().count(True) == 1
+    summary = pd.DataFrame({"obj_name": ["a", "b", "pooled"], "n": [3, 2, 5], "n_missing": [1, 0, 1]})
+    summary = summary.assign(adds_auc=[0, 0, 61.5], add_auc=[0, 0, 42.0])
+    v = scoring.verdict(pairs, 4, summary)
+    assert (v.n_pairs, v.n_ok, v.n_wrong, v.n_failed, v.n_no_estimate) == (7, 4, 1, 3, 1)
+    assert v.failed == [
+        ("not found", 1, "too few matches 1"),
+        ("hidden", 1, "hidden 1"),
+        ("other", 1, "weird new 1"),
+    ]
+    assert report_html.verdict_text(v) == (
+        "7 (frame, object) pairs: 4 ok (1 wrong: ADD-S > 0.1 d), 3 failed (not found 1: too few matches 1; "
+        "hidden 1; other 1: weird new 1); ADD-S AUC 61.5, ADD AUC 42.0 (pooled, 5 instances)"
+    )
+    counts = scoring.with_pair_counts(summary, pairs, has_gt=True).set_index("obj_name")
+    assert counts.loc["a", list(scoring.PAIR_COLUMNS)].tolist() == [4, 2, 1, 2]
+    assert counts.loc["pooled", list(scoring.PAIR_COLUMNS)].tolist() == [7, 4, 1, 3]
+    assert scoring.verdict(scoring.pair_table(poses, None), 4).n_wrong is None

@@ -1,13 +1,15 @@
 """The report's plots (matplotlib, Agg canvas, no pyplot state), each returned as a base64 PNG string.
 
-Accuracy-threshold curves, error histograms, confidence against error, the confidence histogram of a run
-without ground truth, and the timeline of each object's status over the run's time.
+Accuracy-threshold curves, error histograms, confidence against error (one small panel per object), the
+confidence histogram of a run without ground truth, each object's status along the run's time axis (log time
+for one log, else frame order) and its ADD-S or confidence along it (one small panel per object).
 """
 
 from __future__ import annotations
 
 import base64
 import io
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -122,37 +124,48 @@ def error_figure(per_instance: pd.DataFrame) -> str:
     return _fig_png(fig)
 
 
+def _panels(n: int, ncols: int = 4, w: float = 2.8, h: float = 2.1, top: float = 0.5):
+    """A figure of ``n`` small panels (one per object), ``ncols`` a row; unused cells hidden."""
+    ncols = max(1, min(ncols, n))
+    nrows = -(-n // ncols)
+    fig = _new_figure(w * ncols, h * nrows + top)
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    return fig, list(axes[:n])
+
+
 def confidence_figure(per_instance: pd.DataFrame) -> str:
-    """Scatter of confidence against ADD-S (log) of the ok estimates, per object, with Spearman's rho."""
+    """Confidence against ADD-S (log) of the ok estimates, one small panel per object (wrong poses, ADD-S >
+    0.1 d, in purple above the object's dashed 0.1 d line), with Spearman's rho over all of them."""
     from scipy.stats import spearmanr
 
     ok = per_instance[(per_instance["status"] == "ok") & np.isfinite(per_instance["adds_m"])]
-    fig = _new_figure(7.6, 4.2)
-    ax = fig.add_subplot(1, 1, 1)
-    objects = sorted(set(per_instance["obj_name"]))
-    for name, color in zip(objects, colors(len(objects)), strict=True):
+    objects = sorted(set(per_instance["obj_name"])) or ["(no objects)"]
+    fig, axes = _panels(len(objects))
+    floor_mm = 1e-2
+    top_mm = max([100.0 * float(per_instance["diameter_m"].max() or 0.0), *(ok["adds_m"] * 1000.0), 1.0])
+    for ax, name in zip(axes, objects, strict=True):
         g = ok[ok["obj_name"] == name]
-        ax.scatter(
-            g["confidence"],
-            np.maximum(g["adds_m"] * 1000.0, 1e-2),
-            s=18,
-            color=color,
-            label=name,
-            alpha=0.8,
-            edgecolors="none",
-        )
-    title = "Confidence vs ADD-S error (ok estimates)"
+        wrong = (g["adds_m"] > 0.1 * g["diameter_m"]).to_numpy()
+        y = np.maximum(g["adds_m"].to_numpy(float) * 1000.0, floor_mm)
+        conf = g["confidence"].to_numpy(float)
+        ax.scatter(conf[~wrong], y[~wrong], s=12, color=TIMELINE_KINDS[4][1], edgecolors="none")
+        ax.scatter(conf[wrong], y[wrong], s=16, color=TIMELINE_KINDS[0][1], edgecolors="none")
+        d = per_instance.loc[per_instance["obj_name"] == name, "diameter_m"]
+        if len(d):
+            ax.axhline(100.0 * float(d.iloc[0]), color="black", ls="--", lw=0.8)
+        ax.set_yscale("log")
+        ax.set_ylim(floor_mm * 0.8, top_mm * 1.5)
+        ax.set_xlim(-0.02, 1.02)
+        ax.set_title(f"{name}: {int(wrong.sum())} of {len(g)} ok wrong", fontsize=8.5)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("ADD-S (mm, log)", fontsize=8)
+    title = "Confidence (x) vs ADD-S (y) of the ok estimates; purple: wrong (above the dashed 0.1 d line)"
     if len(ok) >= 3 and ok["confidence"].nunique() > 1:
-        rho = spearmanr(ok["confidence"], ok["adds_m"]).statistic
-        title += f", Spearman rho = {rho:.2f}"
-    ax.set_yscale("log")
-    ax.set_xlim(-0.02, 1.02)
-    ax.set_xlabel("confidence")
-    ax.set_ylabel("ADD-S (mm, log)")
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3)
-    if objects:
-        ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8, frameon=False)
+        title += f"; Spearman rho = {spearmanr(ok['confidence'], ok['adds_m']).statistic:.2f}"
+    fig.suptitle(title, fontsize=9.5)
     fig.tight_layout()
     return _fig_png(fig)
 
@@ -184,6 +197,74 @@ def confidence_hist_figure(poses: pd.DataFrame) -> str:
     return _fig_png(fig)
 
 
+# ------------------------------------------------------------------------------------------- time axis
+
+
+@dataclass(frozen=True)
+class TimeAxis:
+    """Where each row of the poses table sits on the report's time axis, and how to label it."""
+
+    x: np.ndarray
+    """(n,) float per row: seconds since the log's first frame, or the frame's position in the run."""
+    label: str
+    breaks: list[tuple[float, str]] = field(default_factory=list)
+    """(x, name) where another scene starts, for runs of several (none for one log)."""
+    n_frames: int = 0
+    log_time: bool = False
+
+
+def time_axis(poses: pd.DataFrame, frames: pd.DataFrame | None) -> TimeAxis | None:
+    """The run's time axis: log time when its frames are one log (one ``source`` and one scene, with
+    increasing ``stamp_ns``), else the frames' order in the run with each scene's start marked (the stamps
+    of frames from unrelated scenes or files are no common clock). None for fewer than 2 frames.
+
+    Args:
+        poses: the poses table (frame_id per row).
+        frames: ``frames.parquet`` (frame_id; stamp_ns, scene_id, source where present) in run order, or
+            None (the poses' frames in order of first appearance).
+    """
+    order = poses.drop_duplicates("frame_id")
+    if frames is not None and "frame_id" in frames.columns:
+        known = frames.drop_duplicates("frame_id")
+        extra = order[~order["frame_id"].isin(known["frame_id"])]  # estimated frames the index lacks (if any)
+        order = pd.concat([known, extra], ignore_index=True) if len(extra) else known
+    order = order.reset_index(drop=True)
+    if len(order) < 2:
+        return None
+    scenes = order["scene_id"] if "scene_id" in order.columns else pd.Series([0] * len(order))
+    stamps = order["stamp_ns"] if "stamp_ns" in order.columns else pd.Series([np.nan] * len(order))
+    one_log = (
+        "source" in order.columns
+        and order["source"].nunique(dropna=False) == 1
+        and scenes.nunique(dropna=False) == 1
+        and bool(stamps.notna().all())
+        and bool((stamps.astype("int64").diff().iloc[1:] > 0).all())
+    )
+    if one_log:
+        t_s = (stamps.astype("int64") - int(stamps.iloc[0])).to_numpy() * 1e-9
+        x = poses["frame_id"].map(pd.Series(t_s, index=order["frame_id"])).to_numpy(float)
+        return TimeAxis(x, "log time (s since the first frame)", [], len(order), log_time=True)
+    starts = np.flatnonzero(scenes.ne(scenes.shift()).to_numpy())
+    names = [int(v) if isinstance(v, float) and v.is_integer() else v for v in scenes.iloc[starts]]
+    breaks = [(float(i), f"scene {n}") for i, n in zip(starts, names, strict=True)] if len(starts) > 1 else []
+    label = "frame, in run order" + (" (scene starts marked)" if breaks else "")
+    position = pd.Series(np.arange(len(order), dtype=float), index=order["frame_id"])
+    return TimeAxis(poses["frame_id"].map(position).to_numpy(float), label, breaks, len(order))
+
+
+def _mark_breaks(ax, axis: TimeAxis, names: bool) -> None:
+    """A line where each scene starts (and its name above the axes); whole frames as ticks in frame order."""
+    if not axis.log_time:
+        from matplotlib.ticker import MaxNLocator
+
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    for x, name in axis.breaks:
+        if x > 0:  # (the first scene starts where the axis does)
+            ax.axvline(x - 0.5, color="black", lw=0.9, alpha=0.7)
+        if names:
+            ax.text(x - 0.5, 1.01, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="bottom")
+
+
 # --------------------------------------------------------------------------------------------- timeline
 
 
@@ -203,87 +284,119 @@ def timeline_kinds(rows: pd.DataFrame, wrong: np.ndarray | None = None) -> np.nd
     return kind
 
 
-def timeline_grid(t_s: np.ndarray, obj: np.ndarray, kind: np.ndarray, objects: list[str], columns: int) -> np.ndarray:
-    """(len(objects), columns) kind index of each column (-1: no row there): the time span cut into
-    ``columns`` equal parts, each showing its most severe kind."""
+def timeline_grid(x: np.ndarray, obj: np.ndarray, kind: np.ndarray, objects: list[str], columns: int) -> np.ndarray:
+    """(len(objects), columns) kind index of each column (-1: no row there): the axis span of ``x`` (seconds
+    or frame positions) cut into ``columns`` equal parts, each showing its most severe kind."""
     grid = np.full((len(objects), columns), len(TIMELINE_KINDS))
-    span = float(t_s.max() - t_s.min()) if len(t_s) else 0.0
-    col = np.zeros(len(t_s), int)
+    span = float(x.max() - x.min()) if len(x) else 0.0
+    col = np.zeros(len(x), int)
     if span > 0:
-        col = np.minimum(((t_s - t_s.min()) / span * columns).astype(int), columns - 1)
+        col = np.minimum(((x - x.min()) / span * columns).astype(int), columns - 1)
     row = np.array([objects.index(o) for o in obj], int)
     np.minimum.at(grid, (row, col), kind)
     grid[grid == len(TIMELINE_KINDS)] = -1
     return grid
 
 
-def timeline_figure(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> str | None:
-    """Status of each object over the run's time (and ADD-S, or confidence without ground truth); None for
-    a run of one frame time."""
-    if "stamp_ns" not in poses.columns or poses["stamp_ns"].isna().any():
+def wrong_per_row(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(ADD-S in metres, wrong) per row of ``poses`` from the scored instances; None without ground truth."""
+    if per_instance is None:
         return None
-    stamps = poses["stamp_ns"].astype("int64")
-    if stamps.nunique() < 2:
+    key = per_instance.drop_duplicates(["frame_id", "obj_name"]).set_index(["frame_id", "obj_name"])
+    idx = pd.MultiIndex.from_frame(poses[["frame_id", "obj_name"]])
+    adds = key["adds_m"].reindex(idx).to_numpy(float)
+    diam = key["diameter_m"].reindex(idx).to_numpy(float)
+    return adds, (poses["status"] == "ok").to_numpy() & (adds > 0.1 * diam)
+
+
+def timeline_figure(poses: pd.DataFrame, per_instance: pd.DataFrame | None, axis: TimeAxis | None) -> str | None:
+    """Each object's status along the run's :func:`time_axis` (one row per object; ok-but-wrong poses in
+    purple with ground truth); None without an axis."""
+    if axis is None or not np.isfinite(axis.x).any():
         return None
     objects = sorted(set(poses["obj_name"]))
-    t_s = ((stamps - stamps.min()) * 1e-9).to_numpy()
-    adds = diam = wrong = None
-    if per_instance is not None:
-        key = per_instance.set_index(["frame_id", "obj_name"])
-        idx = pd.MultiIndex.from_frame(poses[["frame_id", "obj_name"]])
-        adds = key["adds_m"].reindex(idx).to_numpy(float)
-        diam = key["diameter_m"].reindex(idx).to_numpy(float)
-        wrong = adds > 0.1 * diam
-    kind = timeline_kinds(poses, wrong)
-    columns = min(TIMELINE_COLUMNS, int(stamps.nunique()))
-    grid = timeline_grid(t_s, poses["obj_name"].to_numpy(), kind, objects, columns)
+    scored = wrong_per_row(poses, per_instance)
+    kind = timeline_kinds(poses, None if scored is None else scored[1])
+    x = np.nan_to_num(axis.x, nan=float(np.nanmin(axis.x)))
+    columns = min(TIMELINE_COLUMNS, axis.n_frames)
+    grid = timeline_grid(x, poses["obj_name"].to_numpy(), kind, objects, columns)
     from matplotlib.colors import to_rgb
     from matplotlib.patches import Patch
 
     rgb = np.ones((*grid.shape, 3))  # white: no row there
     for k, (_, c) in enumerate(TIMELINE_KINDS):
         rgb[grid == k] = to_rgb(c)
-    fig = _new_figure(10.0, 1.6 + 0.32 * len(objects) + 2.6)
-    ax, ax2 = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [0.5 + 0.32 * len(objects), 2.6]})
-    ax.imshow(rgb, aspect="auto", interpolation="nearest", extent=(0, t_s.max(), len(objects) - 0.5, -0.5))
+    fig = _new_figure(11.0, 1.3 + 0.3 * len(objects))
+    ax = fig.add_subplot(1, 1, 1)
+    half = 0.0 if axis.log_time else 0.5
+    ax.imshow(
+        rgb, aspect="auto", interpolation="nearest", extent=(x.min() - half, x.max() + half, len(objects) - 0.5, -0.5)
+    )
     ax.set_yticks(range(len(objects)), objects, fontsize=8)
-    title = "Status over time"
-    if columns < stamps.nunique():
-        title += f" (about {stamps.nunique() / columns:.0f} frames a column: the most severe shown)"
-    ax.set_title(title, fontsize=10)
-    shown = sorted(set(kind.tolist()))
+    ax.set_xlabel(axis.label, fontsize=9)
+    _mark_breaks(ax, axis, names=True)
+    if columns < axis.n_frames:
+        ax.set_title(f"about {axis.n_frames / columns:.0f} frames a column: the most severe shown", fontsize=8)
     ax.legend(
-        handles=[Patch(color=TIMELINE_KINDS[k][1], label=TIMELINE_KINDS[k][0]) for k in shown],
+        handles=[Patch(color=TIMELINE_KINDS[k][1], label=TIMELINE_KINDS[k][0]) for k in sorted(set(kind.tolist()))],
         loc="upper left",
         bbox_to_anchor=(1.0, 1.0),
         frameon=False,
         fontsize=8,
     )
-    _timeline_values(ax2, poses, objects, t_s, adds, diam)
     fig.tight_layout()
     return _fig_png(fig)
 
 
-def _timeline_values(
-    ax, poses: pd.DataFrame, objects: list[str], t_s: np.ndarray, adds: np.ndarray | None, diam: np.ndarray | None
-) -> None:
-    """The timeline's lower panel: ADD-S of the ok poses (with each object's 0.1 d line) when ``adds`` is
-    given, else their confidence."""
+def values_figure(poses: pd.DataFrame, per_instance: pd.DataFrame | None, axis: TimeAxis | None) -> str | None:
+    """One small panel per object along the run's :func:`time_axis`: the ADD-S of its ok poses (log, one
+    scale for all panels; wrong ones purple above the object's dashed 0.1 d line) with ground truth, else
+    their confidence; failed pairs as red ticks at the bottom. None without an axis."""
+    if axis is None or not np.isfinite(axis.x).any():
+        return None
+    objects = sorted(set(poses["obj_name"]))
+    scored = wrong_per_row(poses, per_instance)
     ok = (poses["status"] == "ok").to_numpy()
-    for name, c in zip(objects, colors(len(objects)), strict=True):
-        sel = ok & (poses["obj_name"] == name).to_numpy()
-        if adds is not None and diam is not None:  # (the diameters come with the ADD-S)
-            ax.scatter(t_s[sel], np.maximum(adds[sel] * 1000.0, 1e-2), s=6, color=c, label=name)
-            d = diam[(poses["obj_name"] == name).to_numpy()]
-            if np.isfinite(d).any():  # the 0.1 d line above which an ok pose counts as wrong
-                ax.axhline(100.0 * np.nanmax(d), color=c, ls="--", lw=0.8)
+    fig, axes = _panels(len(objects), ncols=3, w=3.7, h=1.9)
+    x = axis.x
+    for ax, name in zip(axes, objects, strict=True):
+        mine = (poses["obj_name"] == name).to_numpy()
+        if scored is not None and per_instance is not None:
+            diam = per_instance.loc[per_instance["obj_name"] == name, "diameter_m"]
+            _adds_panel(ax, x, scored, mine & ok, float(diam.iloc[0]) if len(diam) else np.nan)
         else:
-            ax.scatter(t_s[sel], poses["confidence"].to_numpy(float)[sel], s=6, color=c, label=name)
-    if adds is not None:
-        ax.set_yscale("log")
-        ax.set_ylabel("ADD-S of ok poses (mm; dashed: 0.1 d)")
+            ax.scatter(x[mine & ok], poses["confidence"].to_numpy(float)[mine & ok], s=7, color=TIMELINE_KINDS[4][1])
+            ax.set_ylim(0, 1.05)
+        failed = mine & ~ok
+        ax.plot(x[failed], np.zeros(int(failed.sum())), "|", color=TIMELINE_KINDS[1][1], ms=8,
+                transform=ax.get_xaxis_transform())  # fmt: skip
+        _mark_breaks(ax, axis, names=False)
+        ax.set_title(name, fontsize=8.5)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    if scored is not None:
+        adds_mm = scored[0][ok & np.isfinite(scored[0])] * 1000.0
+        top = max([*adds_mm, 100.0 * float(np.nanmax(per_instance["diameter_m"])) if per_instance is not None else 1.0])
+        for ax in axes:
+            ax.set_ylim(max(1e-2, float(adds_mm.min()) if len(adds_mm) else 1.0) * 0.6, top * 1.6)
+        what = "ADD-S of the ok poses (mm, log; purple: wrong, above the dashed 0.1 d line)"
     else:
-        ax.set_ylim(0, 1.02)
-        ax.set_ylabel("confidence of ok poses")
-    ax.set_xlabel("seconds since the run's first frame")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), frameon=False, fontsize=8, markerscale=2)
+        what = "confidence of the ok poses"
+    lo, hi = float(np.nanmin(x)), float(np.nanmax(x))
+    pad = 0.5 if not axis.log_time else 0.02 * (hi - lo)
+    for ax in axes:  # one x range for every panel, so their times line up
+        ax.set_xlim(lo - pad, hi + pad)
+    fig.suptitle(f"{what}; x: {axis.label}; red ticks: failed pairs", fontsize=9.5)
+    fig.tight_layout()
+    return _fig_png(fig)
+
+
+def _adds_panel(ax, x: np.ndarray, scored: tuple[np.ndarray, np.ndarray], sel: np.ndarray, diameter_m: float) -> None:
+    """An object's panel of :func:`values_figure` with ground truth: ADD-S (mm, log) of the ``sel`` rows."""
+    adds, wrong = scored
+    y = np.maximum(adds * 1000.0, 1e-2)
+    ax.scatter(x[sel & ~wrong], y[sel & ~wrong], s=7, color=TIMELINE_KINDS[4][1])
+    ax.scatter(x[sel & wrong], y[sel & wrong], s=10, color=TIMELINE_KINDS[0][1])
+    if np.isfinite(diameter_m):
+        ax.axhline(100.0 * diameter_m, color="black", ls="--", lw=0.8)
+    ax.set_yscale("log")

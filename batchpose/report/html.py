@@ -1,10 +1,14 @@
 """The report page and the comparison page, rendered from the Jinja2 templates in ``report/templates/``.
 
-The pages are self-contained (plots and overlays inline as base64 PNG, no scripts, no external CSS), so they
-open offline from disk. With ground truth the report shows the paper-style table beside the paper's reported
-numbers, accuracy-threshold curves, error distributions, confidence vs error and overlays of the best and
-worst cases; without ground truth, the detection rate, confidence distribution and overlays of estimates.
-This module only builds strings: the report stage (:mod:`batchpose.stages.report`) writes them.
+The pages are self-contained (plots inline as base64 PNG, overlays as base64 JPEG thumbnails that open full
+size in a CSS ``:target`` lightbox; no scripts, no external CSS), so they open offline from disk. The report
+opens with its verdict (pairs, ok, ok but wrong, failed by kind, AUCs), then with ground truth the paper-style
+table beside the paper's reported numbers; each object's status along the run's time axis and its ADD-S (or
+confidence) in one small panel per object; accuracy-threshold curves, error distributions, confidence vs
+error; overlays of the worst, failed and best cases. Without ground truth: detections, confidence and
+overlays of estimates. The run's provenance (objects, versions, manifest, config) sits in collapsed sections.
+Every label is readable text (``too few matches``, not ``n_too_few_matches``). This module only builds
+strings: the report stage (:mod:`batchpose.stages.report`) writes them.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ from batchpose.report import figures, metrics
 from batchpose.report.figures import Curve
 from batchpose.report.overlays import COLOR_EST, COLOR_GT
 from batchpose.report.runs import RunData
-from batchpose.report.scoring import PAPER_MEANS, PAPER_NOTE, timing_table
+from batchpose.report.scoring import PAPER_MEANS, PAPER_NOTE, Verdict, status_label, timing_table
 
 #: Columns of the comparison table shown on its page (those present), and their headers.
 COMPARE_SHOWN = (
@@ -56,6 +60,10 @@ COMPARE_HEADERS = {
     "median_rot_err_deg": "median rot (°)",
     "median_trans_err_mm": "median trans (mm)",
     "time_per_pair_s": "s / (frame, object)",
+    "run": "run",
+    "n_frames": "frames",
+    "n_pairs": "pairs",
+    "n_ok": "ok",
 }
 _TIMING_HEADERS = {
     "total_s": "total (s)",
@@ -66,9 +74,11 @@ _TIMING_HEADERS = {
 }
 _DETECTION_HEADERS = {
     "obj_name": "Object",
+    "n": "pairs",
     "n_ok": "ok",
     "detection_rate_pct": "detection rate (%)",
     "median_confidence": "median confidence (ok)",
+    **{f"n_{s}": status_label(s) for s in STATUSES[1:]},
 }
 
 
@@ -130,6 +140,7 @@ def report_page(
     run: RunData,
     summary: pd.DataFrame,
     per_instance: pd.DataFrame | None,
+    verdict: Verdict,
     overlays: list[dict[str, str]],
     overlay_note: str,
 ) -> str:
@@ -140,19 +151,21 @@ def report_page(
         summary: ``summary.csv``'s table (:func:`batchpose.report.scoring.score_run`'s with ground truth,
             else :func:`batchpose.report.scoring.detection_summary`'s).
         per_instance: per-instance errors with ground truth, else None.
+        verdict: the first line (:func:`batchpose.report.scoring.verdict`).
         overlays, overlay_note: :func:`batchpose.report.overlays.gallery`'s result.
     """
     results = _gt_results(summary, per_instance) if per_instance is not None else _detections(run, summary)
+    axis = figures.time_axis(run.poses, run.frames)
     return _render(
         "report.html.j2",
-        title=f"batchpose report: {run.run_dir.resolve().name}",
+        title=run_title(run),
         run_dir=run.run_dir.resolve(),
         n_frames=run.n_frames,
-        n_pairs=len(run.poses),
-        n_ok=int((run.poses["status"] == "ok").sum()),
         generated=_now(),
         has_gt=per_instance is not None,
-        timeline=_timeline(run.poses, per_instance),
+        verdict=verdict,
+        failed_text=_failed_text(verdict),
+        timeline=_timeline(run.poses, per_instance, axis),
         **results,
         gallery_groups=_groups(overlays),
         gallery_note=overlay_note,
@@ -162,14 +175,40 @@ def report_page(
     )
 
 
+def run_title(run: RunData) -> str:
+    """The report's title: the manifest's ``name`` (a manifest without one is named after its file's stem
+    when the run is made), else the run folder's name."""
+    name = run.manifest.get("name") if isinstance(run.manifest, dict) else None
+    return str(name) if name not in (None, "") else run.run_dir.resolve().name
+
+
+def _failed_text(v: Verdict) -> str:
+    """The failed pairs by kind: "not found 3: too few matches 2, PnP failed 1; hidden 1"."""
+    parts = []
+    for group, n, detail in v.failed:
+        parts.append(detail if detail == f"{group} {n}" else f"{group} {n}: {detail}")
+    return "; ".join(parts)
+
+
+def verdict_text(v: Verdict) -> str:
+    """The verdict as one line of text (the report stage's log line)."""
+    text = f"{v.n_pairs} (frame, object) pairs: {v.n_ok} ok"
+    if v.n_wrong is not None:
+        text += f" ({v.n_wrong} wrong: ADD-S > 0.1 d)"
+    text += f", {v.n_failed} failed" + (f" ({_failed_text(v)})" if v.failed else "")
+    if v.n_wrong is not None:
+        text += f"; ADD-S AUC {fmt(v.adds_auc)}, ADD AUC {fmt(v.add_auc)} (pooled, {v.n_instances} instances)"
+    return text
+
+
 def _failures_text(row: Mapping[str, Any]) -> str:
-    parts = [f"{s} {int(row[f'n_{s}'])}" for s in metrics.FAILURE_STATUSES if row.get(f"n_{s}", 0)]
+    parts = [f"{status_label(s)} {int(row[f'n_{s}'])}" for s in metrics.FAILURE_STATUSES if row.get(f"n_{s}", 0)]
     return ", ".join(parts) or "–"
 
 
 def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, Any]:
     """The results table's rows, the paper's numbers and the accuracy plots."""
-    labels = {"mean": "mean of objects", "pooled": "pooled (all instances)"}
+    labels = {"mean": "mean of objects", "pooled": "pooled (all instances)"}  # the aggregate rows
     rows = [
         {
             **r,
@@ -185,7 +224,7 @@ def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, 
         "curve_adds": figures.curve_figure(figures.object_curves(per_instance, "adds_m"), "ADD-S"),
         "curve_add": figures.curve_figure(figures.object_curves(per_instance, "add_m"), "ADD"),
         "errors": figures.error_figure(per_instance),
-        "confidence": figures.confidence_figure(per_instance),
+        "confidence": figures.confidence_figure(per_instance),  # one panel per object
     }
     means = " · ".join(f"{k} {a:.1f} / {b:.1f}" for k, (a, b) in PAPER_MEANS.items())
     return {"results": rows, "paper_note": PAPER_NOTE, "paper_means": means, "plots": plots}
@@ -193,19 +232,30 @@ def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, 
 
 def _detections(run: RunData, summary: pd.DataFrame) -> dict[str, Any]:
     """The detection table and confidence histogram of a run without ground truth."""
-    cols = ["obj_name", "n", "n_ok", "detection_rate_pct", "median_confidence", *[f"n_{s}" for s in STATUSES[1:]]]
+    cols = ["obj_name", "n", "n_ok", "detection_rate_pct", "median_confidence"]
+    cols += [f"n_{s}" for s in STATUSES[1:] if summary[f"n_{s}"].any()]  # the statuses that occur
+    shown = summary[cols].replace({"obj_name": {"all": "all objects"}})
     return {
-        "detections": _table(summary[cols], "results-table", _DETECTION_HEADERS, digits=2),
+        "detections": _table(shown, "results-table", _DETECTION_HEADERS, digits=2),
         "plots": {"confidence": figures.confidence_hist_figure(run.poses)},
     }
 
 
-def _timeline(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> dict[str, str] | None:
-    png = figures.timeline_figure(poses, per_instance)
-    if png is None:
+def _timeline(
+    poses: pd.DataFrame, per_instance: pd.DataFrame | None, axis: figures.TimeAxis | None
+) -> dict[str, str] | None:
+    """The "Over time" section: the status strip, the per-object panels and what their axis is."""
+    status = figures.timeline_figure(poses, per_instance, axis)
+    values = figures.values_figure(poses, per_instance, axis)
+    if axis is None or status is None or values is None:
         return None
-    what = "ADD-S of the ok poses" if per_instance is not None else "confidence of the ok poses"
-    return {"png": png, "what": what}
+    what = "ADD-S of its ok poses" if per_instance is not None else "confidence of its ok poses"
+    if axis.log_time:
+        where = "The frames are one log, so the axis is the log's time."
+    else:
+        where = "The frames are not one log, so the axis is their order in the run"
+        where += ", a line where each scene starts." if axis.breaks else "."
+    return {"strip": status, "panels": values, "what": what, "axis": where}
 
 
 def _groups(items: list[dict[str, str]]) -> list[tuple[str, list[dict[str, str]]]]:
@@ -217,13 +267,15 @@ def _groups(items: list[dict[str, str]]) -> list[tuple[str, list[dict[str, str]]
 
 
 def _run_section(run: RunData) -> dict[str, Any]:
-    """The "Run" section: status and failure counts, timings, versions, manifest, config and load notes."""
-    status = run.poses["status"].value_counts().rename_axis("status").reset_index(name="count")
+    """The "Run" section: failure reasons, then (collapsed) status counts, timings, objects, versions,
+    manifest and config; load notes."""
+    status = run.poses["status"].astype(str).value_counts()
+    status_df = pd.DataFrame({"status": [status_label(s) for s in status.index], "pairs": status.to_numpy()})
     reasons = None
     if "reason" in run.poses.columns:
         counts = run.poses.loc[run.poses["status"] != "ok", "reason"].value_counts().head(10)
         if len(counts):
-            reasons = _table(counts.rename_axis("reason").reset_index(name="count"), "reasons-table")
+            reasons = _table(counts.rename_axis("reason").reset_index(name="pairs"), "reasons-table")
     timing = timing_table(run.poses)
     versions = None
     if run.versions:
@@ -233,14 +285,32 @@ def _run_section(run: RunData) -> dict[str, Any]:
         )
         versions = _table(vers, "versions-table")
     return {
-        "status_table": _table(status, "status-table"),
+        "status_table": _table(status_df, "status-table"),
         "reasons_table": reasons,
         "timing_table": _table(timing, "timing-table", _TIMING_HEADERS, digits=2) if len(timing) else None,
+        "objects_table": _objects_table(run.objects),
         "versions_table": versions,
         "manifest_yaml": None if run.manifest is None else yaml.safe_dump(run.manifest, sort_keys=False),
         "config_text": run.config_text,
         "notes": run.notes,
     }
+
+
+def _objects_table(objects: Mapping[str, Mapping[str, Any]]) -> Table | None:
+    """The run's objects (``objects.json``): id, diameter, mesh and points files."""
+    if not objects:
+        return None
+    rows = [
+        (
+            name,
+            o.get("obj_id", "–"),
+            float(o["diameter_m"]) * 1000.0 if o.get("diameter_m") is not None else float("nan"),
+            str(o.get("mesh") or "–"),
+            str(o.get("points") or "– (mesh samples)"),
+        )
+        for name, o in sorted(objects.items())
+    ]
+    return Table("objects-table", ["object", "id", "diameter (mm)", "mesh", "points"], rows)
 
 
 # --------------------------------------------------------------------------------------------- compare

@@ -241,7 +241,7 @@ def _check_scale(obj: str, pts: np.ndarray, diameter_m: float) -> None:
         )
 
 
-def _pick_estimates(est: pd.DataFrame) -> pd.DataFrame:
+def pick_estimates(est: pd.DataFrame) -> pd.DataFrame:
     """One estimate per (frame_id, obj_name): an ok row before a failed one, then the most confident."""
     if est.empty:
         return est
@@ -339,7 +339,7 @@ def _check_inputs(est: pd.DataFrame, gt: pd.DataFrame, points, diameters) -> Non
 
 def _instance_rows(est: pd.DataFrame, gt: pd.DataFrame, points, diameters) -> tuple[list[dict], list[str]]:
     """One row per ground-truth instance (see :func:`score`), and the extra ground-truth columns carried over."""
-    picked = _pick_estimates(est)
+    picked = pick_estimates(est)
     by_key = {(r["frame_id"], r["obj_name"]): r for r in picked.to_dict("records")}
     extra = [c for c in gt.columns if c not in ("frame_id", "obj_name", "R", "t_m")]
     rows = []

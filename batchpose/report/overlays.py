@@ -1,6 +1,7 @@
 """The overlay gallery: model points and 3D bounding box drawn at the estimated (and ground-truth) pose on
-the frame, cropped around the object, for the best, worst and failed cases (or the most and least confident
-without ground truth)."""
+the frame, cropped around the object, for the worst, failed and best cases (or the least and most confident
+without ground truth). Each case is a JPEG thumbnail and a full-size JPEG (base64), picked to spread over the
+objects and frames: each object's worst first, then frames not shown yet."""
 
 from __future__ import annotations
 
@@ -15,9 +16,17 @@ import pandas as pd
 from batchpose.core.poses import row_cam_from_model
 from batchpose.errors import BatchposeError, DataError
 from batchpose.report.runs import RunData, fetch_frames
+from batchpose.report.scoring import status_label
 
-#: Number of best / worst / failed cases in the overlay gallery.
-GALLERY_K = 4
+#: Most cases of each gallery group (a run's worst, failed and best; least and most confident without
+#: ground truth).
+GROUP_SIZES = {"worst": 6, "failed": 4, "best": 3, "least confident": 6, "most confident": 3}
+#: Height of a gallery thumbnail, pixels.
+THUMB_HEIGHT = 240
+#: Smallest height of the full-size overlay, pixels (a crop smaller than this is enlarged).
+FULL_MIN_HEIGHT = 480
+#: JPEG quality of the overlays (0-100).
+JPEG_QUALITY = 88
 COLOR_EST = (255, 140, 0)  # RGB orange
 COLOR_GT = (40, 200, 60)  # RGB green
 
@@ -60,7 +69,7 @@ def draw_overlay(
     pts: np.ndarray,
     poses: list[tuple[np.ndarray, tuple[int, int, int]]],
     dist: np.ndarray | None = None,
-    out_height: int = 200,
+    out_height: int | None = THUMB_HEIGHT,
 ) -> np.ndarray:
     """Draw model points and their 3D bounding box at each pose, cropped around the object.
 
@@ -70,7 +79,8 @@ def draw_overlay(
         pts: (N, 3) model points, metres.
         poses: (4x4 cam_from_model, RGB colour) pairs, drawn in order (last on top).
         dist: OpenCV distortion coefficients (empty or None: none).
-        out_height: height of the returned image in pixels.
+        out_height: height of the returned image in pixels; None: the crop at the frame's own resolution, but
+            at least :data:`FULL_MIN_HEIGHT` pixels high.
 
     Returns:
         (out_height, W', 3) uint8 RGB image.
@@ -84,6 +94,8 @@ def draw_overlay(
     # Crop around what was drawn (with context), so a small object is visible in a thumbnail.
     all_uv = np.concatenate([np.concatenate([a, b]) for a, b, _ in projected]) if projected else np.zeros((0, 2))
     x0, y0, x1, y1 = _crop_window(all_uv, w, h)
+    if out_height is None:
+        out_height = max(y1 - y0, FULL_MIN_HEIGHT)
     scale = out_height / (y1 - y0)
     out_w = max(1, round((x1 - x0) * scale))
     interp = cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR
@@ -112,11 +124,30 @@ def draw_overlay(
     return img
 
 
-def _png_b64(rgb: np.ndarray) -> str:
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+def _jpeg_b64(rgb: np.ndarray) -> str:
+    ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:
-        raise DataError("cannot encode overlay PNG")
+        raise DataError("cannot encode overlay JPEG")
     return base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def spread(rows: pd.DataFrame, k: int) -> pd.DataFrame:
+    """Up to ``k`` of ``rows`` (frame_id, obj_name; in order of preference) spread over objects and frames:
+    each object's first row, then rows of frames not shown yet, then the rest, each pass in ``rows``' order."""
+    picked: list = []
+    objects: set[str] = set()
+    frames: set[str] = set()
+    for rule in ("object", "frame", "any"):
+        for i, r in zip(rows.index, rows.itertuples(index=False), strict=True):
+            if len(picked) == k:
+                return rows.loc[picked]
+            new_object = r.obj_name not in objects
+            if i in picked or (rule == "object" and not new_object) or (rule == "frame" and r.frame_id in frames):
+                continue
+            picked.append(i)
+            objects.add(r.obj_name)
+            frames.add(r.frame_id)
+    return rows.loc[picked]
 
 
 @dataclass
@@ -141,17 +172,17 @@ def _best_estimates(poses: pd.DataFrame) -> dict[tuple[str, str], tuple[np.ndarr
 
 
 def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
-    """The best, worst (by ADD-S) and failed instances, each with its ground-truth pose."""
+    """The worst (by ADD-S), failed and best instances, each with its ground-truth pose."""
     est_by_key = _best_estimates(run.poses)
     assert run.gt is not None  # only runs with ground truth have these cases
     gt_by_key = {(r["frame_id"], r["obj_name"]): r for r in run.gt.to_dict("records")}
     ok = per_instance[(per_instance["status"] == "ok") & np.isfinite(per_instance["adds_m"])]
-    ok = ok.sort_values("adds_m", kind="stable")
-    best = ok.head(GALLERY_K)
-    worst = ok.drop(best.index).tail(GALLERY_K).iloc[::-1]
-    failed = per_instance[per_instance["status"] != "ok"].head(GALLERY_K)
+    ok = ok.sort_values("adds_m", ascending=False, kind="stable")
+    worst = spread(ok.head(max(1, (len(ok) + 1) // 2)), GROUP_SIZES["worst"])
+    best = spread(ok.drop(worst.index).iloc[::-1], GROUP_SIZES["best"])
+    failed = spread(per_instance[per_instance["status"] != "ok"], GROUP_SIZES["failed"])
     cases = []
-    for group, rows in (("best", best), ("worst", worst), ("failed", failed)):
+    for group, rows in (("worst", worst), ("failed", failed), ("best", best)):
         for r in rows.to_dict("records"):
             key = (r["frame_id"], r["obj_name"])
             g = gt_by_key[key]
@@ -161,10 +192,11 @@ def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
             est = est_by_key.get(key, (None, {}))
             if group == "failed":
                 reason = est[1].get("reason", "") if est[1] else ""
-                caption = f"{r['status']}" + (f": {reason}" if reason else "") + " (ground truth only)"
+                caption = status_label(r["status"]) + (f": {reason}" if reason else "") + " (ground truth only)"
             else:
+                wrong = " > 0.1 d: wrong" if r["adds_m"] > 0.1 * r["diameter_m"] else ""
                 caption = (
-                    f"ADD-S {r['adds_m'] * 1000:.1f} mm, ADD {r['add_m'] * 1000:.1f} mm, "
+                    f"ADD-S {r['adds_m'] * 1000:.1f} mm{wrong}, ADD {r['add_m'] * 1000:.1f} mm, "
                     f"rot {r['rot_err_deg']:.1f}°, conf {r['confidence']:.2f}"
                 )
             cases.append(_Case(group, key[0], key[1], caption, est[0], T_gt))
@@ -172,20 +204,21 @@ def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
 
 
 def _confidence_cases(poses: pd.DataFrame) -> list[_Case]:
-    """The most and least confident ok estimates (a run without ground truth)."""
-    ok = poses[poses["status"] == "ok"].sort_values("confidence", ascending=False, kind="stable")
-    top = ok.head(GALLERY_K)
-    low = ok.drop(top.index).tail(GALLERY_K).iloc[::-1]
+    """The least and most confident ok estimates (a run without ground truth)."""
+    ok = poses[poses["status"] == "ok"].sort_values("confidence", kind="stable")
+    low = spread(ok.head(max(1, (len(ok) + 1) // 2)), GROUP_SIZES["least confident"])
+    top = spread(ok.drop(low.index).iloc[::-1], GROUP_SIZES["most confident"])
     cases = []
-    for group, rows in (("most confident", top), ("least confident", low)):
+    for group, rows in (("least confident", low), ("most confident", top)):
         for r in rows.to_dict("records"):
-            caption = f"conf {r['confidence']:.2f}, {int(r.get('n_inliers', 0))} inliers"
+            caption = f"confidence {r['confidence']:.2f}, {int(r.get('n_inliers', 0))} inliers"
             cases.append(_Case(group, r["frame_id"], r["obj_name"], caption, row_cam_from_model(r), None))
     return cases
 
 
 def gallery(run: RunData, per_instance: pd.DataFrame | None) -> tuple[list[dict[str, str]], str]:
-    """Overlay images as dicts (id, group, title, caption, b64 PNG) and a note explaining any gap.
+    """Overlay images as dicts (id, group, title, caption; ``thumb`` and ``full``: base64 JPEG) and a note
+    explaining any gap.
 
     Args:
         run: the loaded run (its manifest's ``frames:`` source is read for the frames shown).
@@ -217,13 +250,9 @@ def gallery(run: RunData, per_instance: pd.DataFrame | None) -> tuple[list[dict[
             problems.append(str(e))
             continue
         draw = [(T, c) for T, c in ((case.gt, COLOR_GT), (case.est, COLOR_EST)) if T is not None]
-        img = draw_overlay(
-            rgb,
-            np.asarray(frame.camera.K, float),
-            points[case.obj_name],
-            draw,
-            dist=np.asarray(frame.camera.dist, float),
-        )
+        K, dist, pts = np.asarray(frame.camera.K, float), np.asarray(frame.camera.dist, float), points[case.obj_name]
+        thumb = draw_overlay(rgb, K, pts, draw, dist=dist)
+        full = draw_overlay(rgb, K, pts, draw, dist=dist, out_height=None)
         counters[case.group] = counters.get(case.group, 0) + 1
         slug = case.group.replace(" ", "-")
         items.append(
@@ -232,7 +261,8 @@ def gallery(run: RunData, per_instance: pd.DataFrame | None) -> tuple[list[dict[
                 "group": case.group,
                 "title": f"{case.frame_id} · {case.obj_name}",
                 "caption": case.caption,
-                "b64": _png_b64(img),
+                "thumb": _jpeg_b64(thumb),
+                "full": _jpeg_b64(full),
             }
         )
     if problems:

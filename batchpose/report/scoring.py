@@ -1,5 +1,6 @@
 """The report's tables: a run's estimates scored against its ground truth (``summary.csv``, ``frames.csv``),
-detection summaries without ground truth, per-stage timings, and any BOP results file scored against a run.
+detection summaries without ground truth, the verdict's counts of (frame, object) pairs, per-stage timings,
+and any BOP results file scored against a run.
 
 The metrics themselves (ADD, ADD-S, AUC, recalls) are in :mod:`batchpose.report.metrics`; this module picks
 the rows and columns the report shows, and adds the paper's reported numbers beside ours.
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +69,37 @@ DETECTION_COLUMNS = (
     "median_residual_px",
     "time_total_s",
 )
+
+
+#: Readable names of the pair statuses (:data:`batchpose.core.poses.STATUSES` and ``missing``).
+STATUS_LABELS: dict[str, str] = {
+    "ok": "ok",
+    "too_few_matches": "too few matches",
+    "pnp_failed": "PnP failed",
+    "low_confidence": "low confidence",
+    "hidden": "hidden",
+    "bad_image": "unreadable image",
+    "bad_camera": "bad camera",
+    "error": "error",
+    metrics.MISSING: "no estimate",
+}
+#: The not-ok statuses grouped by what they mean to a reader of the verdict, in the order shown.
+STATUS_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("not found", ("too_few_matches", "pnp_failed")),
+    ("rejected", ("low_confidence",)),
+    ("hidden", ("hidden",)),
+    ("bad input", ("bad_image", "bad_camera")),
+    ("errors", ("error",)),
+)
+#: Counts of (frame, object) pairs added to both ``summary.csv`` tables (the verdict's numbers per object).
+PAIR_COLUMNS = ("n_pairs", "n_pairs_ok", "n_ok_wrong", "n_pairs_failed")
+#: An ok pose is wrong when its ADD-S exceeds this fraction of the object's diameter (the 0.1 d rule).
+WRONG_FRACTION = 0.1
+
+
+def status_label(status: str) -> str:
+    """A status as a reader reads it: ``too_few_matches`` -> "too few matches"."""
+    return STATUS_LABELS.get(status, status.replace("_", " "))
 
 
 def score_run(run: RunData) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -201,3 +234,90 @@ def score_bop_csv(
     est = bop_to_poses(table, obj_names, frame_ids, where=str(csv_path))
     log.info("%s: %d estimates for %d ground-truth instances", csv_path, len(est), len(gt))
     return metrics.score(est, gt, points, diameters)
+
+
+# ---------------------------------------------------------------------------------------------- verdict
+
+
+def pair_table(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> pd.DataFrame:
+    """One row per estimated (frame, object) pair (an ok row first, then the most confident, as scored):
+    frame_id, obj_name, status, and ``wrong`` (True for an ok pose whose ADD-S exceeds 0.1 d; False without
+    ground truth or where the pair has none)."""
+    pairs = metrics.pick_estimates(poses)[["frame_id", "obj_name", "status"]].reset_index(drop=True)
+    pairs["wrong"] = False
+    if per_instance is not None and len(per_instance) and len(pairs):
+        inst = per_instance.assign(_w=per_instance["adds_m"] > WRONG_FRACTION * per_instance["diameter_m"])
+        wrong = inst.groupby(["frame_id", "obj_name"])["_w"].any()
+        key = pd.MultiIndex.from_frame(pairs[["frame_id", "obj_name"]])
+        pairs["wrong"] = (pairs["status"] == "ok").to_numpy() & wrong.reindex(key, fill_value=False).to_numpy(bool)
+    return pairs
+
+
+def _pair_counts(pairs: pd.DataFrame) -> dict[str, int]:
+    ok = pairs["status"] == "ok"
+    return {
+        "n_pairs": len(pairs),
+        "n_pairs_ok": int(ok.sum()),
+        "n_ok_wrong": int(pairs["wrong"].sum()),
+        "n_pairs_failed": int((~ok).sum()),
+    }
+
+
+def with_pair_counts(summary: pd.DataFrame, pairs: pd.DataFrame, has_gt: bool) -> pd.DataFrame:
+    """``summary`` with :data:`PAIR_COLUMNS` after ``obj_name``: each object's pairs, and all pairs on the
+    aggregate rows (``mean``, ``pooled``, ``all``); ``n_ok_wrong`` only with ground truth."""
+    rows = []
+    for name in summary["obj_name"]:
+        sel = pairs if name in ("mean", "pooled", "all") else pairs[pairs["obj_name"] == name]
+        rows.append(_pair_counts(sel))
+    counts = pd.DataFrame(rows, columns=list(PAIR_COLUMNS), index=summary.index)
+    if not has_gt:
+        counts = counts.drop(columns="n_ok_wrong")
+    rest = summary.drop(columns=[c for c in counts.columns if c in summary.columns])
+    return pd.concat([rest[["obj_name"]], counts, rest.drop(columns="obj_name")], axis=1)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The report's first line: what came out of the run's (frame, object) pairs, and its accuracy."""
+
+    n_frames: int
+    n_pairs: int
+    n_ok: int
+    n_failed: int
+    n_wrong: int | None
+    """Ok poses with ADD-S > 0.1 d; None without ground truth."""
+    failed: list[tuple[str, int, str]] = field(default_factory=list)
+    """(group, pairs, "too few matches 3, PnP failed 1") for each :data:`STATUS_GROUPS` entry that occurs."""
+    n_no_estimate: int = 0
+    """Ground-truth instances without any estimate row (not among the pairs)."""
+    n_instances: int = 0
+    adds_auc: float = float("nan")
+    add_auc: float = float("nan")
+
+
+def verdict(pairs: pd.DataFrame, n_frames: int, summary: pd.DataFrame | None = None) -> Verdict:
+    """The verdict of a run from :func:`pair_table`'s pairs and, with ground truth, the scored summary (its
+    ``pooled`` row: AUCs, instances, ``n_missing``)."""
+    counts = _pair_counts(pairs)
+    status = pairs.loc[pairs["status"] != "ok", "status"].astype(str).value_counts()
+    known = {s for _, group in STATUS_GROUPS for s in group}
+    groups = [*STATUS_GROUPS, ("other", tuple(sorted(set(status.index) - known)))]
+    failed = []
+    for label, members in groups:
+        present = [(s, int(status[s])) for s in members if s in status.index]
+        if present:
+            detail = ", ".join(f"{status_label(s)} {n}" for s, n in present)
+            failed.append((label, sum(n for _, n in present), detail))
+    base = Verdict(n_frames, counts["n_pairs"], counts["n_pairs_ok"], counts["n_pairs_failed"], None, failed)
+    if summary is None:
+        return base
+    pooled = summary.set_index("obj_name").loc["pooled"]
+    return replace(
+        base,
+        n_wrong=counts["n_ok_wrong"],
+        n_no_estimate=int(pooled.get(f"n_{metrics.MISSING}", 0)),
+        n_instances=int(pooled["n"]),
+        adds_auc=float(pooled["adds_auc"]),
+        add_auc=float(pooled["add_auc"]),
+    )

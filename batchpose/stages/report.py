@@ -62,18 +62,20 @@ def main(conf: EstimatorConfig | None, poses_path: Path | None, run_dir: Path, o
     if run.has_gt:
         per_instance, summary = scoring.score_run(run)
         frames = scoring.instance_table(run, per_instance)
-        pooled = summary.set_index("obj_name").loc["pooled"]
-        headline = f"ADD-S AUC {pooled['adds_auc']:.1f}, ADD AUC {pooled['add_auc']:.1f} (pooled)"
     else:
         per_instance = None
         summary = scoring.detection_summary(run.poses)
         frames = scoring.detection_table(run.poses)
-        headline = f"detection rate {summary['detection_rate_pct'].iloc[-1]:.1f} %"
+    pairs = scoring.pair_table(run.poses, per_instance)
+    summary = scoring.with_pair_counts(summary, pairs, run.has_gt)
+    verdict = scoring.verdict(pairs, run.n_frames, summary if run.has_gt else None)
     _write_csv(summary, report_dir / "summary.csv")
     _write_csv(frames, report_dir / "frames.csv")
     items, note = overlays.gallery(run, per_instance)
-    write_text_atomic(index, html.report_page(run, summary, per_instance, items, note))
-    log.info("report: %s (%s; %d overlays%s)", index, headline, len(items), f"; {note}" if note else "")
+    write_text_atomic(index, html.report_page(run, summary, per_instance, verdict, items, note))
+    log.info(
+        "report: %s (%s; %d overlays%s)", index, html.verdict_text(verdict), len(items), f"; {note}" if note else ""
+    )
     return report_dir
 
 
