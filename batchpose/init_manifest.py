@@ -2,9 +2,10 @@
 
 The manifest names the topics the reader chooses (:class:`batchpose.io.mcap_read.McapFrameSource`) or the
 folder's calibration file explicitly, one object per mesh found (``meshes/NAME.obj|ply|glb|stl`` or
-``meshes/NAME/textured.obj``), ``targets: all``, and comments on each field and the options users most
-often change. Paths are written relative to the manifest's folder. The manifest is loaded back
-(:func:`batchpose.io.manifest.load_manifest` and its frames opened) before it replaces anything.
+``meshes/NAME/textured.obj``), ``targets: all`` (``annotations`` for data with ground truth), and comments
+on each field and the options users most often change. Paths are written relative to the manifest's folder.
+The manifest is loaded back (:func:`batchpose.io.manifest.load_manifest`, its frames opened) before it
+replaces anything.
 """
 
 from __future__ import annotations
@@ -84,11 +85,10 @@ def main(
         raise DataError(f"{log_path}: no such file or folder (expected an MCAP log or a folder of images)")
     base = out.resolve().parent
     base.mkdir(parents=True, exist_ok=True)
-    frames = _frames_block(log_path, base, image_topic, calibration_topic)
+    frames, has_gt = _frames_block(log_path, base, image_topic, calibration_topic)
     found = find_meshes(meshes)
-    text = "\n".join(
-        [_header(log_path, out), f"name: {_q(log_path.stem)}", "", frames, _objects_block(found, meshes, base)]
-    )
+    objects = _objects_block(found, meshes, base)
+    text = "\n".join([_header(log_path, out), f"name: {_q(log_path.stem)}", "", frames, objects, _targets(has_gt)])
     with atomic_path(out) as tmp:
         tmp.write_text(text.rstrip("\n") + "\n", encoding="utf-8")
         _check(tmp)
@@ -125,8 +125,9 @@ def _header(log_path: Path, out: Path) -> str:
 
 def _frames_block(
     log_path: Path, base: Path, image_topic: str | None = None, calibration_topic: str | None = None
-) -> str:
-    """The ``frames:`` mapping, commented: the log's topics (or the folder's calibration) and the selection keys."""
+) -> tuple[str, bool]:
+    """The ``frames:`` mapping, commented: the log's topics (or the folder's calibration) and the selection keys;
+    and whether the data has ground truth."""
     if log_path.is_dir():
         return _folder_frames(log_path, base)
     src = McapFrameSource(log_path, image_topic=image_topic, calibration_topic=calibration_topic)
@@ -160,10 +161,10 @@ def _frames_block(
             f"  # depth_topic: {_q(depth[0])}",
         ]
     lines += _selection_comments(log=True)
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n", src.gt_topic is not None
 
 
-def _folder_frames(root: Path, base: Path) -> str:
+def _folder_frames(root: Path, base: Path) -> tuple[str, bool]:
     fmt = folder_format(root)
     if fmt != "images":  # YCB-Video and BOP folders carry their own cameras (and ground truth)
         open_frames({"format": fmt, "root": str(root)}, Path.cwd()).count()
@@ -184,7 +185,8 @@ def _folder_frames(root: Path, base: Path) -> str:
             "  # ROS's camera_calibration writes, or OpenCV's calibration YAML.",
             f"  intrinsics: {_q(_rel(src.intrinsics, base))}",
         ]
-    return "\n".join(lines + _selection_comments(log=False)) + "\n"
+    has_gt = fmt == "ycbv" or (fmt == "bop" and any([*root.glob("scene_gt.json"), *root.glob("*/scene_gt.json")]))
+    return "\n".join(lines + _selection_comments(log=False)) + "\n", has_gt
 
 
 def _selection_comments(log: bool) -> list[str]:
@@ -255,20 +257,25 @@ def _objects_block(found: list[FoundMesh], meshes: Path, base: Path) -> str:
         "# Units: metres; a mesh in millimetres (bounding box over 5 units) is found and rescaled, with a warning",
         "# (force it with --set mesh.units=mm or m). Delete an object's line to leave it out.",
     ]
+    # evaluation points (ADD, ADD-S against ground truth) where every mesh folder has them, as YCB's do
+    points = ', points: "{name}/points.xyz"' if all((m.path.parent / "points.xyz").is_file() for m in usable) else ""
     if len(tpls) == 1:
-        lines += [f"models: {{root: {_q(_rel(meshes, base))}, mesh: {_q(tpls.pop())}}}", "objects:"]
+        lines += [f"models: {{root: {_q(_rel(meshes, base))}, mesh: {_q(tpls.pop())}{points}}}", "objects:"]
         lines += [_object_line(m, f"- {_q(m.name)}") for m in found]
     else:
         lines.append("objects:")
         lines += [_object_line(m, f"{_q(m.name)}: {{mesh: {_q(_rel(m.path, base))}}}") for m in found]
-    lines += [
-        "",
-        "# Which objects to look for in each frame: all (every object, every frame), or annotations (only the",
-        "# objects the ground truth lists in a frame, for logs with /ground_truth/poses and data sets).",
-        "targets: all",
-        "",
-    ]
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n"
+
+
+def _targets(has_gt: bool) -> str:
+    return "\n".join(
+        [
+            "# Which objects to look for in each frame: all (every object in every frame), or annotations (only",
+            "# the objects the ground truth lists in a frame: logs with /ground_truth/poses, YCB-Video, BOP).",
+            f"targets: {'annotations' if has_gt else 'all'}",
+        ]
+    )
 
 
 def _object_line(m: FoundMesh, entry: str) -> str:

@@ -14,6 +14,8 @@ import contextlib
 import datetime
 from pathlib import Path
 
+import numpy as np
+
 from batchpose.core.frames import Camera, image_size
 from batchpose.errors import BatchposeError, CameraError, DataError
 from batchpose.io.files import one_line
@@ -99,21 +101,21 @@ def _time_span(mlog: McapLog) -> str:
 
 
 def _topic_rows(mlog: McapLog, firsts: dict[str, ImageMsg | str]) -> list[str]:
-    """One line per topic: name, schema (its encoding), message count, and what its first image is."""
+    """One line per topic, in columns: name, schema (message encoding), message count, its first image."""
     rows = []
     for cid in sorted(mlog.channels):
         ch = mlog.channels[cid]
-        schema = mlog.schema_name(ch) or "no schema"
         n = mlog.topic_count(ch.topic)
         what = ""
         if ch.topic in firsts:
             first = firsts[ch.topic]
-            what = f"  {_image_text(first)}" if isinstance(first, ImageMsg) else f"  ({first})"
+            what = _image_text(first) if isinstance(first, ImageMsg) else f"({first})"
         elif mlog.schema_name(ch) in CALIBRATION_SCHEMAS:
-            what = "  calibration"
+            what = "calibration"
         count = "? messages" if n is None else f"{n} message{'s' if n != 1 else ''}"
-        rows.append(f"  {ch.topic}  {schema} ({ch.message_encoding})  {count}{what}")
-    return rows
+        rows.append((ch.topic, f"{mlog.schema_name(ch) or 'no schema'} ({ch.message_encoding})", count, what))
+    widths = [max((len(r[i]) for r in rows), default=0) for i in range(3)]
+    return [f"  {t:<{widths[0]}}  {s:<{widths[1]}}  {c:>{widths[2]}}  {w}".rstrip() for t, s, c, w in rows]
 
 
 def _first_image(mlog: McapLog, topic: str) -> ImageMsg | str:
@@ -170,7 +172,7 @@ def _choice(mlog: McapLog, firsts: dict[str, ImageMsg | str]) -> list[str]:
     n = src.count()
     rate = ""
     if mlog.start_ns is not None and mlog.end_ns is not None and mlog.end_ns > mlog.start_ns and n > 1:
-        rate = f", about {n / ((mlog.end_ns - mlog.start_ns) * 1e-9):.1f} per second"
+        rate = f", about {(n - 1) / ((mlog.end_ns - mlog.start_ns) * 1e-9):.3g} per second over the log"
     lines.append(f"frames: {n} image{'s' if n != 1 else ''} on {src.image_topic}{rate}")
     return lines
 
@@ -184,21 +186,21 @@ def _why(mlog: McapLog, chosen: str) -> str:
     reasons = []
     for t in others:
         if mlog.topic_count(t) == 0:
-            reasons.append(f"{t} has no messages")
+            reasons.append(f"{t}: no messages")
         elif "depth" in t.lower():
-            reasons.append(f"{t} is named as depth")
+            reasons.append(f"{t}: named as depth")
         elif calibration_beside(topics, t) is None and calibration_beside(topics, chosen) is not None:
-            reasons.append(f"{t} has no calibration beside it")
+            reasons.append(f"{t}: no calibration beside it")
         elif colour_rank(t) > colour_rank(chosen):
-            reasons.append(f"{t} is not named as colour")
+            reasons.append(f"{t}: not named as colour")
         else:
-            reasons.append(f"{t} comes later in the log")
-    return f"chosen over {'; '.join(reasons)}; set frames.image_topic to read another"
+            reasons.append(f"{t}: later in the log")
+    return f"chosen over {'; '.join(reasons)}. To read another, set frames.image_topic in the manifest"
 
 
 def _calib_text(cal: Calib, rectified: bool) -> str:
     K = cal.K
-    dist = f"{cal.model or 'distortion'} {len(cal.dist)} coefficients" if cal.dist.size else "no distortion"
+    dist = _dist_text(cal.model, cal.dist)
     rect = " (rectified images: the calibration's P is used)" if rectified else ""
     frame = f", frame {cal.frame_id}" if cal.frame_id else ""
     return (
@@ -250,5 +252,11 @@ def _describe_folder(root: Path) -> str:
 
 def _camera_text(cam: Camera) -> str:
     K = cam.K
-    dist = f"{cam.distortion_model or 'distortion'} {len(cam.dist)} coefficients" if cam.dist.size else "no distortion"
+    dist = _dist_text(cam.distortion_model, cam.dist)
     return f"fx {K[0, 0]:.1f} fy {K[1, 1]:.1f} cx {K[0, 2]:.1f} cy {K[1, 2]:.1f}, {cam.width}x{cam.height}, {dist}"
+
+
+def _dist_text(model: str, dist: np.ndarray) -> str:
+    if not dist.size:
+        return "no distortion"
+    return f"{model or 'distortion'} ({len(dist)} coefficients{', all zero' if not np.any(dist) else ''})"
