@@ -186,10 +186,10 @@ def _add_data_commands(sub, common: argparse.ArgumentParser) -> None:
         sub,
         common,
         "inspect",
-        ["batchpose inspect my_log.mcap"],
+        ["batchpose inspect my_log.mcap", "batchpose inspect my_images/"],
         help="describe a log: topics, image sizes, calibration, time span, the image topic batchpose reads",
     )
-    i.add_argument("path", help="the log to describe")
+    i.add_argument("path", help="the log (MCAP) or image folder to describe")
     i.set_defaults(func=_cmd_inspect)
 
     n = _subcommand(
@@ -198,8 +198,10 @@ def _add_data_commands(sub, common: argparse.ArgumentParser) -> None:
         "init",
         ["batchpose init my_log.mcap --meshes meshes/ --out my_log.yaml"],
         help="write a commented data manifest for a log and a folder of meshes",
+        description="Write a data manifest for LOG and the meshes in --meshes, with comments on what to edit "
+        "(frames, objects, topics), and print the `batchpose run` that uses it.",
     )
-    n.add_argument("log", help="the log the manifest reads")
+    n.add_argument("log", help="the log (MCAP) or image folder the manifest reads")
     n.add_argument(
         "--meshes", required=True, help="folder of meshes (meshes/NAME.obj, .ply, .glb or NAME/textured.obj)"
     )
