@@ -92,7 +92,7 @@ def main(
     with atomic_path(out) as tmp:
         tmp.write_text(text.rstrip("\n") + "\n", encoding="utf-8")
         _check(tmp)
-    logger.info("wrote %s: %d object(s), frames from %s", out, sum(m.usable for m in found), log)
+    logger.debug("wrote %s: %d object(s), frames from %s", out, sum(m.usable for m in found), log)
     return out
 
 
