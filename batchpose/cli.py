@@ -56,6 +56,7 @@ def _cmd_run(args: argparse.Namespace) -> None:
         scheduler=args.scheduler,
         overwrite=args.overwrite,
         limit=args.limit,
+        ros_tf=args.ros_tf,
     )
 
 
@@ -177,6 +178,12 @@ def _add_run(sub, common: argparse.ArgumentParser) -> None:
     r.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (with --backend dask)")
     r.add_argument("--overwrite", action="store_true", help="recompute every stage, ignoring earlier results")
     r.add_argument("--limit", type=int, help="process only the first N frames")
+    r.add_argument(
+        "--no-ros-tf",
+        dest="ros_tf",
+        action="store_false",
+        help="do not add the poses as tf2_msgs/TFMessage on /tf to poses.mcap (added by default for ROS logs)",
+    )
     r.set_defaults(func=_cmd_run)
 
 

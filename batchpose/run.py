@@ -142,9 +142,10 @@ def main(
     overwrite: bool = False,
     limit: int | None = None,
     report: bool = True,
+    ros_tf: bool = True,
 ) -> Path:
     """Run the whole pipeline: each stage's ``main`` returns the artifact the next one reads. Returns
-    ``run_dir``."""
+    ``run_dir``. ``ros_tf``: also write the poses on ``/tf`` (tf2_msgs) in ``poses.mcap`` of a ROS log."""
     t_start = time.perf_counter()
     if jobs < 1:
         raise ConfigError(f"--jobs must be >= 1, got {jobs}")
@@ -183,7 +184,7 @@ def main(
             )
             poses_path = estimate.main(conf, inputs, job.run_dir, overwrite)
         csv_path = export_csv.main(conf, poses_path, job.run_dir, overwrite)
-        exported = export_mcap.ExportInputs(poses_path, templates.models, man.frames, source)
+        exported = export_mcap.ExportInputs(poses_path, templates.models, man.frames, source, ros_tf=ros_tf)
         mcap_path = export_mcap.main(conf, exported, job.run_dir, overwrite)
         if report:
             from batchpose.stages import report as report_stage

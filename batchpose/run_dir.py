@@ -166,7 +166,8 @@ def prepare(
 ) -> Job:
     """Load and check the pipeline (with ``--set`` overrides), the manifest and the paths; writes nothing."""
     conf_dict = apply_overrides(load_yaml(Path(pipeline)), list(overrides))
-    conf = load_estimator_config(conf_dict, where=str(pipeline))
+    where = str(pipeline) + (f" with --set {' '.join(overrides)}" if overrides else "")
+    conf = load_estimator_config(conf_dict, where=where)
     if limit is not None and limit < 1:
         raise ConfigError(f"--limit must be >= 1, got {limit}")
     man = load_manifest(Path(manifest))
