@@ -812,13 +812,14 @@ def test_spread_shows_each_object_then_new_frames():
 def test_verdict_counts_pairs_and_groups_failures():
     poses = pd.DataFrame(
         {
-            "frame_id": ["f0", "f0", "f1", "f1", "f2", "f2", "f2", "f3"],
-            "obj_name": ["a", "b", "a", "b", "a", "b", "b", "a"],
-            "status": ["ok", "ok", "ok", "hidden", "too_few_matches", "pnp_failed", "ok", "weird_new"],
-            "confidence": [0.9, 0.8, 0.7, 0.0, 0.0, 0.0, 0.6, 0.0],
+            "frame_id": ["f0", "f0", "f1", "f1", "f2", "f2", "f2", "f3", "f4"],
+            "obj_name": ["a", "b", "a", "b", "a", "b", "b", "a", "a"],
+            "status": ["ok", "ok", "ok", "hidden", "too_few_matches", "pnp_failed", "ok", "weird_new", "ok"],
+            "confidence": [0.9, 0.8, 0.7, 0.0, 0.0, 0.0, 0.6, 0.0, 0.5],
         }
     )
-    # b in f2 has a failed and an ok row: one pair, ok (the scored row). a in f1 is wrong (ADD-S > 0.1 d).
+    # b in f2 has a failed and an ok row: one pair, ok (the scored row). a in f1 is wrong (ADD-S > 0.1 d);
+    # a in f4 has no ground truth, so it cannot be wrong.
     per_instance = pd.DataFrame(
         {
             "frame_id": ["f0", "f0", "f1", "f2", "f9"],
@@ -829,21 +830,21 @@ def test_verdict_counts_pairs_and_groups_failures():
         }
     )
     pairs = scoring.pair_table(poses, per_instance)
-    assert len(pairs) == 7 and pairs["wrong"].tolist().count(True) == 1
+    assert len(pairs) == 8 and pairs["wrong"].tolist().count(True) == 1 and pairs["checked"].sum() == 4
     summary = pd.DataFrame({"obj_name": ["a", "b", "pooled"], "n": [3, 2, 5], "n_missing": [1, 0, 1]})
     summary = summary.assign(adds_auc=[0, 0, 61.5], add_auc=[0, 0, 42.0])
     v = scoring.verdict(pairs, 4, summary)
-    assert (v.n_pairs, v.n_ok, v.n_wrong, v.n_failed, v.n_no_estimate) == (7, 4, 1, 3, 1)
+    assert (v.n_pairs, v.n_ok, v.n_wrong, v.n_failed, v.n_no_estimate, v.n_ok_unchecked) == (8, 5, 1, 3, 1, 1)
     assert v.failed == [
         ("not found", 1, "too few matches 1"),
         ("hidden", 1, "hidden 1"),
         ("other", 1, "weird new 1"),
     ]
     assert report_html.verdict_text(v) == (
-        "7 (frame, object) pairs: 4 ok (1 wrong: ADD-S > 0.1 d), 3 failed (not found 1: too few matches 1; "
+        "8 (frame, object) pairs: 5 ok (1 wrong: ADD-S > 0.1 d), 3 failed (not found 1: too few matches 1; "
         "hidden 1; other 1: weird new 1); ADD-S AUC 61.5, ADD AUC 42.0 (pooled, 5 instances)"
     )
     counts = scoring.with_pair_counts(summary, pairs, has_gt=True).set_index("obj_name")
-    assert counts.loc["a", list(scoring.PAIR_COLUMNS)].tolist() == [4, 2, 1, 2]
-    assert counts.loc["pooled", list(scoring.PAIR_COLUMNS)].tolist() == [7, 4, 1, 3]
+    assert counts.loc["a", list(scoring.PAIR_COLUMNS)].tolist() == [5, 3, 1, 2]
+    assert counts.loc["pooled", list(scoring.PAIR_COLUMNS)].tolist() == [8, 5, 1, 3]
     assert scoring.verdict(scoring.pair_table(poses, None), 4).n_wrong is None

@@ -171,6 +171,14 @@ def _best_estimates(poses: pd.DataFrame) -> dict[tuple[str, str], tuple[np.ndarr
     return est_by_key
 
 
+def _worse_half(ranked: pd.DataFrame) -> pd.DataFrame:
+    """The first half of ``ranked`` rows (worst first) and each object's first row, in ``ranked``'s order:
+    the candidates of the worst group, where every object shows its worst case."""
+    head = ranked.index[: max(1, (len(ranked) + 1) // 2)]
+    each = ranked.drop_duplicates("obj_name").index
+    return ranked[ranked.index.isin(head) | ranked.index.isin(each)]
+
+
 def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
     """The worst (by ADD-S), failed and best instances, each with its ground-truth pose."""
     est_by_key = _best_estimates(run.poses)
@@ -178,7 +186,7 @@ def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
     gt_by_key = {(r["frame_id"], r["obj_name"]): r for r in run.gt.to_dict("records")}
     ok = per_instance[(per_instance["status"] == "ok") & np.isfinite(per_instance["adds_m"])]
     ok = ok.sort_values("adds_m", ascending=False, kind="stable")
-    worst = spread(ok.head(max(1, (len(ok) + 1) // 2)), GROUP_SIZES["worst"])
+    worst = spread(_worse_half(ok), GROUP_SIZES["worst"])
     best = spread(ok.drop(worst.index).iloc[::-1], GROUP_SIZES["best"])
     failed = spread(per_instance[per_instance["status"] != "ok"], GROUP_SIZES["failed"])
     cases = []
@@ -206,7 +214,7 @@ def _gt_cases(run: RunData, per_instance: pd.DataFrame) -> list[_Case]:
 def _confidence_cases(poses: pd.DataFrame) -> list[_Case]:
     """The least and most confident ok estimates (a run without ground truth)."""
     ok = poses[poses["status"] == "ok"].sort_values("confidence", kind="stable")
-    low = spread(ok.head(max(1, (len(ok) + 1) // 2)), GROUP_SIZES["least confident"])
+    low = spread(_worse_half(ok), GROUP_SIZES["least confident"])
     top = spread(ok.drop(low.index).iloc[::-1], GROUP_SIZES["most confident"])
     cases = []
     for group, rows in (("least confident", low), ("most confident", top)):

@@ -241,15 +241,17 @@ def score_bop_csv(
 
 def pair_table(poses: pd.DataFrame, per_instance: pd.DataFrame | None) -> pd.DataFrame:
     """One row per estimated (frame, object) pair (an ok row first, then the most confident, as scored):
-    frame_id, obj_name, status, and ``wrong`` (True for an ok pose whose ADD-S exceeds 0.1 d; False without
-    ground truth or where the pair has none)."""
+    frame_id, obj_name, status, ``wrong`` (True for an ok pose whose ADD-S exceeds 0.1 d; False without
+    ground truth or where the pair has none) and ``checked`` (the pair has ground truth)."""
     pairs = metrics.pick_estimates(poses)[["frame_id", "obj_name", "status"]].reset_index(drop=True)
     pairs["wrong"] = False
+    pairs["checked"] = False
     if per_instance is not None and len(per_instance) and len(pairs):
         inst = per_instance.assign(_w=per_instance["adds_m"] > WRONG_FRACTION * per_instance["diameter_m"])
         wrong = inst.groupby(["frame_id", "obj_name"])["_w"].any()
         key = pd.MultiIndex.from_frame(pairs[["frame_id", "obj_name"]])
         pairs["wrong"] = (pairs["status"] == "ok").to_numpy() & wrong.reindex(key, fill_value=False).to_numpy(bool)
+        pairs["checked"] = key.isin(wrong.index)
     return pairs
 
 
@@ -291,6 +293,8 @@ class Verdict:
     """(group, pairs, "too few matches 3, PnP failed 1") for each :data:`STATUS_GROUPS` entry that occurs."""
     n_no_estimate: int = 0
     """Ground-truth instances without any estimate row (not among the pairs)."""
+    n_ok_unchecked: int = 0
+    """Ok pairs without ground truth, which therefore cannot be called wrong."""
     n_instances: int = 0
     adds_auc: float = float("nan")
     add_auc: float = float("nan")
@@ -316,6 +320,7 @@ def verdict(pairs: pd.DataFrame, n_frames: int, summary: pd.DataFrame | None = N
     return replace(
         base,
         n_wrong=counts["n_ok_wrong"],
+        n_ok_unchecked=int(((pairs["status"] == "ok") & ~pairs["checked"]).sum()),
         n_no_estimate=int(pooled.get(f"n_{metrics.MISSING}", 0)),
         n_instances=int(pooled["n"]),
         adds_auc=float(pooled["adds_auc"]),
