@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import re
 import shlex
 import shutil
@@ -144,7 +145,11 @@ def run_commands(work: Path, lines: list[str], cache: Path) -> dict[str, str]:
     worker and templates at one distance); returns each command's stdout by its subcommand, and fails on a
     non-zero exit."""
     outputs = {}
+    logger = logging.getLogger("batchpose")  # cli.main adds a handler and stops propagation: put them back after
     with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(logger, "handlers", list(logger.handlers))
+        mp.setattr(logger, "propagate", logger.propagate)
+        mp.setattr(logger, "level", logger.level)
         mp.chdir(work)
         for line in lines:
             argv = shlex.split(line)[1:]
