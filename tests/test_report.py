@@ -298,7 +298,7 @@ def test_html_content(report):
         assert re.search(rf'<details id="details-{part}"><summary>', html), part
     assert html.index('id="verdict"') < html.index("<section")
     imgs = _imgs(html)
-    for id_ in ("plot-curve-adds", "plot-curve-add", "plot-errors", "plot-confidence", "plot-values"):
+    for id_ in ("plot-curves", "plot-errors", "plot-confidence", "plot-values"):
         assert _decodes(imgs[id_]).shape[1] >= 500
     if not HAVE_DATASETS:
         assert 'id="gallery-note"' in html

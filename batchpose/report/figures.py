@@ -1,8 +1,9 @@
 """The report's plots (matplotlib, Agg canvas, no pyplot state), each returned as a base64 PNG string.
 
-Accuracy-threshold curves, error histograms, confidence against error (one small panel per object), the
-confidence histogram of a run without ground truth, each object's status along the run's time axis (log time
-for one log, else frame order) and its ADD-S or confidence along it (one small panel per object).
+Accuracy-threshold curves (runs side by side, or one small panel per object), error histograms, confidence
+against error (one small panel per object), the confidence histogram of a run without ground truth, each
+object's status along the run's time axis (log time for one log, else frame order) and its ADD-S or
+confidence along it (one small panel per object).
 """
 
 from __future__ import annotations
@@ -80,18 +81,32 @@ def curve_figure(curves: list[Curve], title: str) -> str:
     return _fig_png(fig)
 
 
-def object_curves(per_instance: pd.DataFrame, column: str) -> list[Curve]:
-    """One curve of ``column`` (``adds_m`` or ``add_m``) per object, and the pooled curve (dashed)."""
+def curves_figure(per_instance: pd.DataFrame) -> str:
+    """Accuracy vs threshold, one small panel per object after one of all instances pooled: ADD-S (solid)
+    and ADD (dashed) in each, the AUCs in its title."""
     objects = sorted(set(per_instance["obj_name"]))
-    curves = []
-    for name, color in zip(objects, colors(len(objects)), strict=True):
-        d = per_instance.loc[per_instance["obj_name"] == name, column].to_numpy(float)
-        curves.append((f"{name} (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": color, "lw": 1.4}))
-    d = per_instance[column].to_numpy(float)
-    curves.append(
-        (f"pooled (AUC {metrics.vocap_auc(d):.1f}, n={len(d)})", d, {"color": "black", "lw": 2.2, "ls": "--"})
-    )
-    return curves
+    groups = [("all objects (pooled)", per_instance)] + [
+        (n, per_instance[per_instance["obj_name"] == n]) for n in objects
+    ]
+    fig, axes = _panels(len(groups), ncols=4, w=2.9, h=2.3)
+    x_cm = CURVE_THRESHOLDS * 100.0
+    for ax, (name, g) in zip(axes, groups, strict=True):
+        aucs = []
+        for column, label, ls in (("adds_m", "ADD-S", "-"), ("add_m", "ADD", "--")):
+            d = g[column].to_numpy(float)
+            ax.step(x_cm, metrics.accuracy_curve(d, CURVE_THRESHOLDS), where="post", ls=ls, lw=1.6,
+                    color="#4c72b0" if label == "ADD-S" else "#dd8452", label=label)  # fmt: skip
+            aucs.append(f"{metrics.vocap_auc(d):.1f}")
+        ax.set_title(f"{name} (n={len(g)})\nAUC ADD-S {aucs[0]}, ADD {aucs[1]}", fontsize=8.5)
+        ax.set_xlim(0, 10)
+        ax.set_ylim(0, 101)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="lower right", fontsize=7.5, frameon=False)
+    axes[0].set_ylabel("accuracy (%)", fontsize=8)
+    fig.suptitle("Accuracy vs distance threshold (cm): the share of instances within it", fontsize=9.5)
+    fig.tight_layout()
+    return _fig_png(fig)
 
 
 def error_figure(per_instance: pd.DataFrame) -> str:

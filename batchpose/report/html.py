@@ -221,8 +221,7 @@ def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, 
         for r in summary.to_dict("records")
     ]
     plots = {
-        "curve_adds": figures.curve_figure(figures.object_curves(per_instance, "adds_m"), "ADD-S"),
-        "curve_add": figures.curve_figure(figures.object_curves(per_instance, "add_m"), "ADD"),
+        "curves": figures.curves_figure(per_instance),  # one panel per object
         "errors": figures.error_figure(per_instance),
         "confidence": figures.confidence_figure(per_instance),  # one panel per object
     }
