@@ -11,6 +11,7 @@ import trimesh
 
 from batchpose.config import MeshConfig
 from batchpose.errors import MeshError
+from batchpose.io import mesh as mesh_module
 from batchpose.io.mesh import load_mesh
 from batchpose.method.render import get_renderer
 from tests.conftest import GELATIN, K_SYN
@@ -93,6 +94,8 @@ def test_millimetre_mesh_cached_with_its_scale_and_still_refused(tmp_path, caplo
     load_mesh(p, cache_dir=cache)
     caplog.clear()
     _no_parsing(monkeypatch)
+    assert load_mesh(p, cache_dir=cache).scale == 0.001 and "millimetres" not in caplog.text  # once per run
+    monkeypatch.setattr(mesh_module, "_WARNED", set())  # another run (process) loading it from the cache
     m = load_mesh(p, cache_dir=cache)
     assert m.scale == 0.001 and 0.05 < m.diameter_m < 0.2
     assert "millimetres" in caplog.text  # warned again, not silently scaled
