@@ -79,7 +79,14 @@ def _cmd_inspect(args: argparse.Namespace) -> None:
 def _cmd_init(args: argparse.Namespace) -> None:
     from batchpose import init_manifest
 
-    out = init_manifest.main(Path(args.log), Path(args.meshes), Path(args.out), overwrite=args.overwrite)
+    out = init_manifest.main(
+        Path(args.log),
+        Path(args.meshes),
+        Path(args.out),
+        overwrite=args.overwrite,
+        image_topic=args.image_topic,
+        calibration_topic=args.calibration_topic,
+    )
     out = Path(out) if out else Path(args.out)
     print(f"wrote {out}")
     print(f"next: batchpose run --manifest {out} --out runs/{out.stem}")
@@ -214,6 +221,8 @@ def _add_data_commands(sub, common: argparse.ArgumentParser) -> None:
     )
     n.add_argument("--out", required=True, help="manifest YAML to write (must not exist unless --overwrite)")
     n.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    n.add_argument("--image-topic", help="the log's image topic to read (default: the one `inspect` names)")
+    n.add_argument("--calibration-topic", help="the log's camera-info topic (default: the one beside the images)")
     n.set_defaults(func=_cmd_init)
 
     c = _subcommand(

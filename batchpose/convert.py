@@ -52,7 +52,7 @@ def main(src: Path, out: Path, fmt: str, overwrite: bool = False) -> Path:
     """Convert the data set in ``src`` to the MCAP file ``out`` (written atomically).
 
     Args:
-        src: data set folder (``images``: its intrinsics are ``SRC/intrinsics.yaml``).
+        src: data set folder (``images``: its intrinsics found as by :class:`batchpose.io.folders.ImagesFrameSource`).
         out: output ``.mcap`` file.
         fmt: layout of ``src``: "ycbv", "bop" or "images".
         overwrite: replace ``out`` if it exists.

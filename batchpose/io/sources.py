@@ -36,7 +36,8 @@ def open_frames(spec: Mapping[str, Any], base_dir: Path) -> FrameSource:
 
     Args:
         spec: ``{format: ycbv, root: PATH}``, ``{format: bop, root: PATH, obj_names: {1: name}}``,
-            ``{format: images, root: PATH, intrinsics: PATH}`` (intrinsics default ``ROOT/intrinsics.yaml``)
+            ``{format: images, root: PATH, intrinsics: PATH}`` (intrinsics default: the first of
+            :data:`batchpose.io.folders.INTRINSICS_NAMES` in ROOT: ``intrinsics.yaml``, ``ost.yaml``, ...)
             or ``{format: mcap, path: PATH, image_topic: TOPIC, calibration_topic: TOPIC, depth_topic: TOPIC,
             rectified: BOOL}``
             (topics optional; no depth topic: no depth).
