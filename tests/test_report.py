@@ -564,24 +564,23 @@ class Browser:
     def __init__(self, executable: str, profile: Path, width: int = 1280, height: int = 800):
         to_child, self._out = os.pipe()
         self._in, from_child = os.pipe()
-
-        def pipes_as_fd_3_and_4():  # (in the child, before exec)
-            a, b = fcntl.fcntl(to_child, fcntl.F_DUPFD, 10), fcntl.fcntl(from_child, fcntl.F_DUPFD, 10)
-            os.dup2(a, 3)
-            os.dup2(b, 4)
-
+        # The child's ends above fd 9, so that moving them to 3 and 4 cannot overwrite one with the other.
+        r, w = (fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10) for fd in (to_child, from_child))
+        os.close(to_child)
+        os.close(from_child)
         flags = ["--headless", "--no-sandbox", "--disable-gpu", "--remote-debugging-pipe", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
                  "--disable-dev-shm-usage", "--hide-scrollbars", f"--user-data-dir={profile}"]  # fmt: skip
+        # A trampoline (not preexec_fn, unsafe with threads) puts them on fds 3 and 4, then becomes the browser.
+        move = f"import os, sys; os.dup2({r}, 3); os.dup2({w}, 4); os.execv(sys.argv[1], sys.argv[1:])"
         self.proc = subprocess.Popen(
-            [executable, *flags, "about:blank"],
-            preexec_fn=pipes_as_fd_3_and_4,
-            close_fds=False,
+            [sys.executable, "-c", move, executable, *flags, "about:blank"],
+            pass_fds=(r, w),
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        os.close(to_child)
-        os.close(from_child)
+        os.close(r)
+        os.close(w)
         self._buf, self._id, self.events = b"", 0, []
         target = self.call("Target.createTarget", url="about:blank")["targetId"]
         self.session = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
