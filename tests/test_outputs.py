@@ -141,3 +141,10 @@ def test_millimetre_warning_once(tmp_path, caplog):
     warned = [r.getMessage() for r in caplog.records if "millimetres" in r.getMessage()]
     assert len(warned) == 1 and "scaling by 0.001" in warned[0], warned
     assert model.diameter_m == pytest.approx(load_mesh(src / "textured.obj").diameter_m, rel=1e-3)
+
+
+def test_a_later_run_in_the_same_process_keeps_its_own_ids(own_run, tmp_path, cache_dir):
+    """The in-process worker's estimator is rebuilt for other ids (it once kept the run before's)."""
+    out = tmp_path / "demo"
+    run.main(PIPELINE, ROOT / "data_manifest" / "demo.yaml", out, cache_dir=cache_dir, jobs=1, report=False, limit=1)
+    assert pd.read_csv(out / "poses.csv")["obj_id"].tolist() == [8]  # the gelatin box's YCB-Video id

@@ -102,7 +102,7 @@ _WORKER: dict = {}
 
 def _estimator(setup: WorkerSetup) -> PoseEstimator:
     """The worker's estimator, built on first use and kept for the rest of the run."""
-    key = config_hash(setup.conf_dict, setup.lib_dirs, setup.mesh_paths)
+    key = config_hash(setup.conf_dict, setup.lib_dirs, setup.mesh_paths, setup.obj_ids)
     if _WORKER.get("key") != key:
         conf = load_estimator_config(setup.conf_dict)
         libs = {name: library.load(Path(d)) for name, d in setup.lib_dirs.items()}
