@@ -76,8 +76,10 @@ def test_resume_computes_only_missing_pairs(demo_run, tmp_path, cache_dir, stop_
 
 @pytest.mark.slow
 def test_jobs_and_dask_give_identical_results(demo_run, tmp_path, cache_dir):
-    run.main(PIPELINE, DEMO, tmp_path / "j2", cache_dir=cache_dir, jobs=2, report=False)
-    pd.testing.assert_frame_equal(_csv(tmp_path / "j2" / "poses.csv"), _csv(demo_run / "poses.csv"))
+    # The first two frames (two tasks: the demo's frames are not consecutive) are enough to tell backends apart.
+    first = _csv(demo_run / "poses.csv").head(2)
+    run.main(PIPELINE, DEMO, tmp_path / "j2", cache_dir=cache_dir, jobs=2, report=False, limit=2)
+    pd.testing.assert_frame_equal(_csv(tmp_path / "j2" / "poses.csv"), first)
     from dask.distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
@@ -89,8 +91,9 @@ def test_jobs_and_dask_give_identical_results(demo_run, tmp_path, cache_dir):
             backend="dask",
             scheduler=cluster.scheduler_address,
             report=False,
+            limit=2,
         )
-    pd.testing.assert_frame_equal(_csv(tmp_path / "dask" / "poses.csv"), _csv(demo_run / "poses.csv"))
+    pd.testing.assert_frame_equal(_csv(tmp_path / "dask" / "poses.csv"), first)
 
 
 def _cli(*args, cwd=ROOT):
