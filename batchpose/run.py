@@ -190,5 +190,6 @@ def main(
             from batchpose.stages import report as report_stage
 
             report_stage.main(None, None, job.run_dir, overwrite=True)
-        log.info("done in %.1f s: %s, %s", time.perf_counter() - t_start, csv_path, mcap_path)
+        outputs = [job.run_dir / "trajectory.csv", csv_path, mcap_path]
+        log.info("done in %.1f s: %s", time.perf_counter() - t_start, ", ".join(map(str, outputs)))
         return job.run_dir
