@@ -124,6 +124,13 @@ class MatchConfig:
     """"none": whole image; "gt_box": oracle box from ground truth (evaluation only, never default)."""
     roi_margin_px: int = knob(24, ge=0)
     """``roi: gt_box``: the box of the template keypoints projected at the true pose, grown by this many pixels."""
+    presence_votes: int = knob(0, ge=0)
+    """Which objects are in the frame, decided before the expensive steps: an object whose frame keypoints
+    agree on no location with at least this many votes (the locator's Hough vote on centre, size and
+    in-plane rotation, Lowe 2004; chance matches scatter) is reported ``absent``, without the fine pass,
+    the retries, refinement or the plane search. 0: off (every object gets the full estimate). Only where
+    the run does not know which objects a frame shows (``targets: all``): under ``targets: annotations``
+    the ground truth lists them."""
 
 
 @dataclass(frozen=True)

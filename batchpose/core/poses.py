@@ -17,7 +17,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-STATUSES = ("ok", "too_few_matches", "pnp_failed", "low_confidence", "hidden", "bad_image", "bad_camera", "error")
+STATUSES = (
+    "ok",
+    "absent",
+    "too_few_matches",
+    "pnp_failed",
+    "low_confidence",
+    "hidden",
+    "bad_image",
+    "bad_camera",
+    "error",
+)
 #: Per-(frame, object) timing stages, in pipeline order.
 STAGES = (
     "decode", "track", "sift", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "seed", "depth", "plane",

@@ -333,7 +333,7 @@ def _votes(
     # The object's centre and diameter in each template view.
     centre = lib.pts3d.mean(axis=0).astype(np.float64)
     diam = float(np.linalg.norm(lib.pts3d.max(axis=0) - lib.pts3d.min(axis=0)))
-    T = np.stack([lib.cam_from_model(v) for v in range(lib.n_views)])
+    T = lib.cams_from_model()
     c_cam = T[:, :3, :3] @ centre + T[:, :3, 3]
     c_img = (c_cam @ lib.K.T)[:, :2] / c_cam[:, 2:3]
     d_img = lib.K[0, 0] * diam / c_cam[:, 2]

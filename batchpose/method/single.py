@@ -16,13 +16,14 @@ import numpy as np
 from batchpose.core.frames import Camera, ObjectPose
 from batchpose.core.poses import PoseRecord
 from batchpose.errors import BatchposeError
+from batchpose.method.correspondences import locate
 from batchpose.method.features import detect_shapes, to_gray
 from batchpose.method.gnc_pnp import PnpResult
 from batchpose.method.hypotheses import alternative, planar_mirror, polish, refine
 from batchpose.method.objects import Objects
 from batchpose.method.passes import best, find_passes
 from batchpose.method.records import NOT_FOUND, Replaced, confidence, pose_of
-from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image, query_index
+from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image, nearest_templates, query_index
 
 
 def estimate_image(
@@ -63,12 +64,41 @@ def estimate_image(
         shot.replaced = replaced
     records = []
     for name in obj_names:
-        rec = estimate_object(objects, shot, name, keys, name in quick)
+        rec = absent(objects, shot, name, keys) or estimate_object(objects, shot, name, keys, name in quick)
         rec.timings["sift"] = t_sift
         records.append(rec)
     if conf.features.retry_contrast_threshold > 0:
-        retry(objects, shot, records, quick | no_retry)
+        gone = frozenset(r.obj_name for r in records if r.status == "absent")
+        retry(objects, shot, records, quick | no_retry | gone)
     return records
+
+
+def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseRecord | None:
+    """``match.presence_votes``: the object's ``absent`` record when the frame keypoints' Hough votes for its
+    location (:func:`~batchpose.method.correspondences.locate`, from the library query the view vote
+    shares) peak below that many; None when it may be there (or the check is off)."""
+    need = objects.conf.match.presence_votes
+    if need <= 0 or keys.shapes is None:
+        return None
+    t0 = time.perf_counter()
+    votes = presence_votes(objects, shot, name, keys)
+    if votes >= need:
+        return None
+    rec = PoseRecord(shot.frame_id, name, "absent", obj_id=objects.obj_id(name))
+    rec.reason = f"{votes} keypoints agree on where it would be, need {need} (match.presence_votes)"
+    rec.timings["match"] = time.perf_counter() - t0
+    return rec
+
+
+def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> int:
+    """The most frame keypoints that agree on one location of the object (0: none matched)."""
+    nearest = nearest_templates(objects, shot, name, keys.desc)
+    if nearest is None or keys.shapes is None:
+        return 0
+    lib, cam = objects.libraries[name], shot.camera
+    found = locate(keys.xy, keys.shapes, keys.desc, objects.library_index(name), lib, objects.conf.match,
+                   cam.width, cam.height, min_votes=1, peaks=1, nearest=nearest)  # fmt: skip
+    return found[0].votes if found else 0
 
 
 def retry(objects: Objects, shot: Shot, records: list[PoseRecord], skip: frozenset[str]) -> None:

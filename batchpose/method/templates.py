@@ -60,6 +60,12 @@ class TemplateLibrary:
     def cam_from_model(self, view_id: int) -> np.ndarray:
         return np.asarray(self.views["cam_from_model"].iloc[view_id], dtype=np.float64).reshape(4, 4)
 
+    def cams_from_model(self) -> np.ndarray:
+        """(n_views, 4, 4) every view's ``cam_from_model``, stacked once (the locator asks per frame)."""
+        if getattr(self, "_cams", None) is None:
+            self._cams = np.stack([self.cam_from_model(v) for v in range(self.n_views)])
+        return self._cams
+
 
 def auto_distances(model: ObjectModel, K: np.ndarray, width: int, height: int, conf: RenderConfig):
     """Camera distances (metres) at which the object's diameter spans ``conf.image_fractions``."""

@@ -31,6 +31,7 @@ TIMELINE_KINDS: tuple[tuple[str, str], ...] = (
     ("hidden", "#b0b0b0"),
     ("ok, full estimate", "#2f7d32"),
     ("ok, tracked", "#95d195"),
+    ("absent (match.presence_votes)", "#e4e4e4"),
 )
 #: Most columns a timeline row has: a longer run puts several frames in a column.
 TIMELINE_COLUMNS = 1200
@@ -292,6 +293,7 @@ def timeline_kinds(rows: pd.DataFrame, wrong: np.ndarray | None = None) -> np.nd
     kind = np.full(len(rows), 1)  # failed: every status not named below
     kind[status == "low_confidence"] = 2
     kind[status == "hidden"] = 3
+    kind[status == "absent"] = 6
     kind[ok & ~tracked] = 4
     kind[ok & tracked] = 5
     if wrong is not None:

@@ -74,6 +74,7 @@ DETECTION_COLUMNS = (
 #: Readable names of the pair statuses (:data:`batchpose.core.poses.STATUSES` and ``missing``).
 STATUS_LABELS: dict[str, str] = {
     "ok": "ok",
+    "absent": "absent",
     "too_few_matches": "too few matches",
     "pnp_failed": "PnP failed",
     "low_confidence": "low confidence",
@@ -85,6 +86,7 @@ STATUS_LABELS: dict[str, str] = {
 }
 #: The not-ok statuses grouped by what they mean to a reader of the verdict, in the order shown.
 STATUS_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("absent", ("absent",)),
     ("not found", ("too_few_matches", "pnp_failed")),
     ("rejected", ("low_confidence",)),
     ("hidden", ("hidden",)),

@@ -10,6 +10,7 @@ merged into ``run_dir/poses.parquet``.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import time
@@ -235,6 +236,9 @@ def clear(run_dir: Path) -> None:
 def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, chunks: Iterator[Chunk]) -> int:
     """Estimate the chunks on the workers; each chunk's shard is written as soon as it is done. Returns the
     number of pairs estimated."""
+    if inputs.targets_mode == "annotations" and conf.match.presence_votes:
+        # The ground truth says each target is in its frame: no object is looked for that is not there.
+        conf = dataclasses.replace(conf, match=dataclasses.replace(conf.match, presence_votes=0))
     setup = WorkerSetup(
         to_dict(conf),
         {k: str(v) for k, v in inputs.lib_dirs.items()},
