@@ -55,7 +55,7 @@ demo: setup
 	@echo "BOP results:                                          $(CURDIR)/runs/demo/poses.csv"
 
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15  # the slowest tests: CI must stay near 15 minutes
 
 lint: setup
 	$(VENV)/bin/ruff check batchpose tests benchmarks
