@@ -29,6 +29,7 @@ from batchpose.io.manifest import load_manifest
 from batchpose.io.sources import open_frames
 from batchpose.report.metrics import add
 from tests.conftest import DEMO, GELATIN, ROOT
+from tests.test_mcap_io import ROS_CAMERA_INFO, ROS_COMPRESSED
 
 #: The demo frames of the gelatin box (demo_data/ycbv), in the order the logs hold them.
 FRAME_IDS = ("0000/000001", "0000/000004")
@@ -42,27 +43,6 @@ README_FALLBACK = (
     "batchpose inspect my_log.mcap",
     "batchpose init my_log.mcap --meshes meshes/ --out my_log.yaml",
     "batchpose run --manifest my_log.yaml --out runs/my_log",
-)
-
-ROS_HEADER = "std_msgs/Header header\n"
-ROS_DEPS = """================================================================================
-MSG: std_msgs/Header
-builtin_interfaces/Time stamp
-string frame_id
-================================================================================
-MSG: builtin_interfaces/Time
-int32 sec
-uint32 nanosec
-"""
-ROS_COMPRESSED = ROS_HEADER + "string format\nuint8[] data\n" + ROS_DEPS
-ROS_CAMERA_INFO = (
-    ROS_HEADER
-    + "uint32 height\nuint32 width\nstring distortion_model\nfloat64[] d\nfloat64[9] k\nfloat64[9] r\n"
-    + "float64[12] p\nuint32 binning_x\nuint32 binning_y\nsensor_msgs/RegionOfInterest roi\n"
-    + ROS_DEPS
-    + "================================================================================\n"
-    + "MSG: sensor_msgs/RegionOfInterest\nuint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\n"
-    + "bool do_rectify\n"
 )
 
 
