@@ -22,6 +22,7 @@ run uses, with ``every``, ``frame_ids`` and (logs) ``from_s`` / ``to_s``: :class
 from __future__ import annotations
 
 import difflib
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -196,5 +197,6 @@ def object_ids(objects: tuple[ObjectSpec, ...], known: dict[str, int]) -> dict[s
     for o in objects:
         if o.name not in ids and known.get(o.name, 0) > 0 and known[o.name] not in ids.values():
             ids[o.name] = known[o.name]
-    free = (i for i in range(1, len(objects) * 2 + max(ids.values(), default=0) + 2) if i not in ids.values())
+    taken = set(ids.values())
+    free = (i for i in itertools.count(1) if i not in taken)
     return {o.name: ids[o.name] if o.name in ids else next(free) for o in objects}

@@ -70,11 +70,11 @@ def _limit_texture(mesh: trimesh.Trimesh, max_px: int) -> None:
 _WARNED: set[str] = set()
 
 
-def _warn_once(message: str) -> None:
-    key = message.split(": bounding-box")[0]  # one warning per mesh file, whichever load gives it
-    if key not in _WARNED:
-        _WARNED.add(key)
-        log.warning("%s", message)
+def _warn_once(path: Path, message: str) -> None:
+    """Warn ``path: message`` unless this process has warned about that mesh file already."""
+    if str(Path(path)) not in _WARNED:
+        _WARNED.add(str(Path(path)))
+        log.warning("%s: %s", path, message)
 
 
 def quiet_mesh_warnings(paths) -> None:
@@ -110,7 +110,7 @@ def unit_scale(path: Path, bounds: np.ndarray, conf: MeshConfig = MeshConfig()) 
                 f"{path}: bounding-box diagonal is {diag:.1f} units, so the mesh looks like millimetres; "
                 "convert it to metres or set mesh.on_millimetres: convert"
             )
-        _warn_once(f"{path}: bounding-box diagonal {diag:.1f} looks like millimetres; scaling by 0.001")
+        _warn_once(path, f"bounding-box diagonal {diag:.1f} looks like millimetres; scaling by 0.001")
         units = "mm"
     return 0.001 if units == "mm" else 1.0
 
@@ -143,7 +143,7 @@ def load_mesh(
     cached = _read_cached(entry, digest)
     if cached is not None:
         if cached.scale != 1.0 and conf.units == "auto":  # as the first load warned
-            _warn_once(f"{path}: bounding-box diagonal looks like millimetres; scaling by {cached.scale:g}")
+            _warn_once(path, f"bounding-box diagonal looks like millimetres; scaling by {cached.scale:g}")
         return dataclasses.replace(cached, name=name, path=path)
     model = _parse_mesh(path, conf, name, digest)
     _write_cached(entry, model)

@@ -62,16 +62,15 @@ def trajectory(poses: pd.DataFrame) -> pd.DataFrame:
     return out[list(TRAJECTORY_COLUMNS)]
 
 
-def write_trajectory_csv(poses: pd.DataFrame, out: Path) -> Path:
-    """Write :func:`trajectory` of ``poses`` to ``out`` (atomically); returns ``out``."""
-    table = trajectory(poses)
+def write_trajectory_csv(table: pd.DataFrame, out: Path) -> Path:
+    """Write a :func:`trajectory` table to ``out`` (atomically); returns ``out``."""
     return write_text_atomic(Path(out), table.to_csv(index=False, float_format="%.9g"), encoding="utf-8")
 
 
-def write_tum(poses: pd.DataFrame, out_dir: Path) -> list[Path]:
+def write_tum(table: pd.DataFrame, out_dir: Path) -> list[Path]:
     """Write ``out_dir/<object>.txt`` in the TUM trajectory format (``stamp_s tx ty tz qx qy qz qw``, seconds
-    and metres, time order) for every object with an ``ok`` pose; returns the files written."""
-    table = trajectory(poses)
+    and metres, time order) for every object with an ``ok`` pose of a :func:`trajectory` table; returns the
+    files written."""
     table = table[table["status"] == "ok"].sort_values(["stamp_ns", "frame_id"], kind="stable")
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     written = []

@@ -78,7 +78,7 @@ def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseReco
     location (:func:`~batchpose.method.correspondences.locate`, from the library query the view vote
     shares) peak below that many; None when it may be there (or the check is off)."""
     need = objects.conf.match.presence_votes
-    if need <= 0 or keys.shapes is None:
+    if need <= 0:
         return None
     t0 = time.perf_counter()
     votes = presence_votes(objects, shot, name, keys)

@@ -11,7 +11,7 @@ import pandas as pd
 
 from batchpose.config import EstimatorConfig
 from batchpose.io.bop_csv import write_bop_csv
-from batchpose.io.trajectory import write_trajectory_csv, write_tum
+from batchpose.io.trajectory import trajectory, write_trajectory_csv, write_tum
 from batchpose.stages import up_to_date
 
 log = logging.getLogger("batchpose")
@@ -27,6 +27,7 @@ def main(conf: EstimatorConfig | None, poses_path: Path, run_dir: Path, overwrit
     if up_to_date("CSV export", out, overwrite, fresh):
         return out
     poses = pd.read_parquet(poses_path)
-    write_tum(poses, run_dir / "tum")
-    write_trajectory_csv(poses, traj)
+    table = trajectory(poses)
+    write_tum(table, run_dir / "tum")
+    write_trajectory_csv(table, traj)
     return write_bop_csv(poses, out)
