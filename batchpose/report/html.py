@@ -26,7 +26,7 @@ import pandas as pd
 import yaml
 
 from batchpose.core.poses import STATUSES
-from batchpose.report import figures, metrics
+from batchpose.report import figures, metrics, precision
 from batchpose.report.figures import Curve
 from batchpose.report.overlays import COLOR_EST, COLOR_GT
 from batchpose.report.runs import RunData
@@ -154,7 +154,7 @@ def report_page(
         verdict: the first line (:func:`batchpose.report.scoring.verdict`).
         overlays, overlay_note: :func:`batchpose.report.overlays.gallery`'s result.
     """
-    results = _gt_results(summary, per_instance) if per_instance is not None else _detections(run, summary)
+    results = _gt_results(run, summary, per_instance) if per_instance is not None else _detections(run, summary)
     axis = figures.time_axis(run.poses, run.frames)
     return _render(
         "report.html.j2",
@@ -198,6 +198,10 @@ def verdict_text(v: Verdict) -> str:
     text += f", {v.n_failed} failed" + (f" ({_failed_text(v)})" if v.failed else "")
     if v.n_wrong is not None:
         text += f"; ADD-S AUC {fmt(v.adds_auc)}, ADD AUC {fmt(v.add_auc)} (pooled, {v.n_instances} instances)"
+        text += f"; ok precision {fmt(v.ok_precision, 3)}, recall {fmt(v.ok_recall, 3)} (ADD-S < 0.2 d)"
+        text += f"; BOP AR {fmt(v.ar, 3)}"
+        if v.n_absent_pairs:
+            text += f"; {v.n_ok_absent} ok of {v.n_absent_pairs} pairs of absent objects"
     return text
 
 
@@ -206,8 +210,8 @@ def _failures_text(row: Mapping[str, Any]) -> str:
     return ", ".join(parts) or "–"
 
 
-def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, Any]:
-    """The results table's rows, the paper's numbers and the accuracy plots."""
+def _gt_results(run: RunData, summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, Any]:
+    """The results table's rows, the paper's numbers, the accuracy plots and the precision-recall curve."""
     labels = {"mean": "mean of objects", "pooled": "pooled (all instances)"}  # the aggregate rows
     rows = [
         {
@@ -224,9 +228,21 @@ def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, 
         "curves": figures.curves_figure(per_instance),  # one panel per object
         "errors": figures.error_figure(per_instance),
         "confidence": figures.confidence_figure(per_instance),  # one panel per object
+        "pr": _pr_plot(run, len(per_instance)),
     }
     means = " · ".join(f"{k} {a:.1f} / {b:.1f}" for k, (a, b) in PAPER_MEANS.items())
-    return {"results": rows, "paper_note": PAPER_NOTE, "paper_means": means, "plots": plots}
+    bop = [c for c in ("ar_vsd", "ar_mssd", "ar_mspd", "ar") if c in summary.columns]
+    return {"results": rows, "paper_note": PAPER_NOTE, "paper_means": means, "plots": plots, "bop_columns": bop}
+
+
+def _pr_plot(run: RunData, n_instances: int) -> str | None:
+    """The precision-recall curve of the run's poses (None without ground truth or poses to sweep)."""
+    if run.gt is None or not len(run.gt):
+        return None
+    points, diameters = run.model_points(run.gt["obj_name"])
+    table = precision.pose_table(run.poses, run.gt, points, diameters)
+    curve = precision.pr_curve(table, n_instances, precision.min_confidence(run.config_text))
+    return figures.pr_figure(curve) if curve is not None else None
 
 
 def _detections(run: RunData, summary: pd.DataFrame) -> dict[str, Any]:
