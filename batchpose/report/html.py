@@ -198,8 +198,10 @@ def verdict_text(v: Verdict) -> str:
     text += f", {v.n_failed} failed" + (f" ({_failed_text(v)})" if v.failed else "")
     if v.n_wrong is not None:
         text += f"; ADD-S AUC {fmt(v.adds_auc)}, ADD AUC {fmt(v.add_auc)} (pooled, {v.n_instances} instances)"
-        text += f"; ok precision {fmt(v.ok_precision, 3)}, recall {fmt(v.ok_recall, 3)} (ADD-S < 0.2 d)"
-        text += f"; BOP AR {fmt(v.ar, 3)}"
+        if np.isfinite(v.ok_precision) or np.isfinite(v.ok_recall):
+            text += f"; ok precision {fmt(v.ok_precision, 3)}, recall {fmt(v.ok_recall, 3)} (ADD-S < 0.2 d)"
+        if np.isfinite(v.ar):
+            text += f"; BOP AR {fmt(v.ar, 3)}"
         if v.n_absent_pairs:
             text += f"; {v.n_ok_absent} ok of {v.n_absent_pairs} pairs of absent objects"
     return text
