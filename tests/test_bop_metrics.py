@@ -164,38 +164,37 @@ def test_precision_recall_and_absent_objects():
             ("f0", "b", "low_confidence", 0.2, (0, 0, 1.0)),  # correct, but rejected
             ("f1", "b", "ok", 0.7, (0, 0, 1.0)),  # b is absent from f1: a false positive
             ("f1", "c", "absent", 0.0, (np.nan, np.nan, np.nan)),  # c absent, and said so
-            ("f2", "a", "ok", 0.95, (0, 0, 1.0)),  # f2 has no ground truth: not counted
+            ("f2", "a", "ok", 0.95, (0, 0, 1.0)),  # nothing is in f2: a false positive too
         ]
     )
     pts = {n: np.random.default_rng(0).uniform(-0.05, 0.05, (100, 3)) for n in ("a", "b")}
     diam = {"a": 0.1, "b": 0.1}
     table = precision.pose_table(poses, gt, pts, diam)
-    by_pair = table.set_index(["frame_id", "obj_name"])
-    assert len(table) == 4 and ("f2", "a") not in by_pair.index
-    assert by_pair["correct"].to_dict() == {
-        ("f0", "a"): True,
-        ("f1", "a"): False,
-        ("f1", "b"): False,
-        ("f0", "b"): True,
-    }
-    assert not by_pair.loc[("f1", "b"), "present"] and np.isinf(by_pair.loc[("f1", "b"), "adds_m"])
+    by_pair = table.set_index(["frame_id", "obj_name"])["correct"].to_dict()
+    assert by_pair == {("f0", "a"): True, ("f1", "a"): False, ("f1", "b"): False, ("f0", "b"): True, ("f2", "a"): False}
+    assert table.loc[table["frame_id"] == "f2", "adds_m"].tolist() == [np.inf]
     absent = precision.absent_pairs(poses, gt)
-    assert sorted(zip(absent["obj_name"], absent["ok"], strict=True)) == [("b", True), ("c", False)]
+    assert sorted(zip(absent["frame_id"], absent["obj_name"], absent["ok"], strict=True)) == [
+        ("f1", "b", True),
+        ("f1", "c", False),
+        ("f2", "a", True),
+    ]
     t = precision.trust(table, absent, n_instances=3)
-    # ok poses on frames with ground truth: a/f0 (correct), a/f1 (wrong), b/f1 (absent) -> 1 of 3 correct;
-    # 1 of the 3 instances got a correct ok pose.
-    assert (t.ok_precision, t.ok_recall) == (pytest.approx(1 / 3), pytest.approx(1 / 3))
-    assert (t.n_ok_absent, t.n_absent_pairs) == (1, 2)
+    # ok poses: a/f0 (correct), a/f1 (wrong), b/f1 and a/f2 (absent) -> 1 of 4 correct; 1 of the 3 instances
+    # got a correct ok pose.
+    assert (t.ok_precision, t.ok_recall) == (pytest.approx(1 / 4), pytest.approx(1 / 3))
+    assert (t.n_ok_absent, t.n_absent_pairs) == (2, 3)
     curve = precision.pr_curve(table, 3, default_threshold=0.3)
-    # Confidence 0.9, 0.8, 0.7, 0.2: correct, wrong, wrong, correct.
-    np.testing.assert_allclose(curve.thresholds, [0.9, 0.8, 0.7, 0.2])
-    np.testing.assert_allclose(curve.precision, [1.0, 0.5, 1 / 3, 0.5])
-    np.testing.assert_allclose(curve.recall, [1 / 3, 1 / 3, 1 / 3, 2 / 3])
-    assert curve.ok_point == (pytest.approx(1 / 3), pytest.approx(1 / 3))
+    # Confidence 0.95, 0.9, 0.8, 0.7, 0.2: wrong, correct, wrong, wrong, correct.
+    np.testing.assert_allclose(curve.thresholds, [0.95, 0.9, 0.8, 0.7, 0.2])
+    np.testing.assert_allclose(curve.precision, [0.0, 0.5, 1 / 3, 0.25, 0.4])
+    np.testing.assert_allclose(curve.recall, [0.0, 1 / 3, 1 / 3, 1 / 3, 2 / 3])
+    assert curve.ok_point == (pytest.approx(1 / 3), pytest.approx(1 / 4))
     summary = pd.DataFrame({"obj_name": ["a", "b", "mean", "pooled"], "n": [2, 1, 3, 3]})
     s = precision.trust_columns(summary, table, absent).set_index("obj_name")
-    assert s.loc["a", "ok_precision"] == 0.5 and s.loc["a", "ok_recall"] == 0.5
+    assert s.loc["a", "ok_precision"] == pytest.approx(1 / 3) and s.loc["a", "ok_recall"] == 0.5
     assert s.loc["b", "ok_precision"] == 0.0 and s.loc["b", "ok_recall"] == 0.0 and s.loc["b", "n_ok_absent"] == 1
-    assert s.loc["mean", "ok_precision"] == 0.25 and s.loc["pooled", "ok_precision"] == pytest.approx(1 / 3)
+    assert s.loc["mean", "ok_precision"] == pytest.approx(1 / 6) and s.loc["pooled", "ok_precision"] == 0.25
+    assert s.loc["pooled", "n_absent_pairs"] == 3
     assert precision.min_confidence("pipeline:\n  min_confidence: 0.3\n") == 0.3
     assert precision.min_confidence("name: x\n") is None

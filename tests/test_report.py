@@ -439,6 +439,11 @@ def test_compare(tmp_path):
     assert table.loc[0, "add_recall_01d"] == pytest.approx(75.0)
     assert table.loc[1, "add_recall_01d"] == pytest.approx(62.5)
     assert math.isnan(table.loc[2, "add_auc_pooled"]) and table.loc[2, "n_ok"] == 6
+    # ADD-S lets a box slide along its own faces, so the 50 mm pose stays correct (ADD-S < 0.2 d) for the
+    # precision and recall of ok; its MSSD (50 mm = 0.41 d) passes 2 of 10 thresholds instead of 9 (10 mm).
+    assert table.loc[:1, "ok_precision"].tolist() == [1.0, 1.0]
+    assert table.loc[:1, "ok_recall"].tolist() == [pytest.approx(6 / 8)] * 2
+    assert table.loc[0, "ar_pooled"] > table.loc[1, "ar_pooled"]
     html = (out / "index.html").read_text()
     imgs = _imgs(html)
     assert set(imgs) == {"plot-compare-adds", "plot-compare-add"} and 'id="compare-table"' in html

@@ -47,6 +47,9 @@ COMPARE_SHOWN = (
     "add_recall_01d",
     "median_rot_err_deg",
     "median_trans_err_mm",
+    "ar_pooled",
+    "ok_precision",
+    "ok_recall",
     "time_per_pair_s",
 )
 COMPARE_HEADERS = {
@@ -59,6 +62,9 @@ COMPARE_HEADERS = {
     "add_recall_01d": "ADD < 0.1d (%)",
     "median_rot_err_deg": "median rot (°)",
     "median_trans_err_mm": "median trans (mm)",
+    "ar_pooled": "BOP AR (pooled)",
+    "ok_precision": "ok precision",
+    "ok_recall": "ok recall",
     "time_per_pair_s": "s / (frame, object)",
     "run": "run",
     "n_frames": "frames",

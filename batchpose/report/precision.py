@@ -2,9 +2,9 @@
 precision-recall curve as the confidence threshold sweeps.
 
 A pose is *correct* when its ADD-S to the ground truth is below :data:`CORRECT_FRACTION` of the object's
-diameter. Only frames with ground truth count (a frame without any ground-truth instance cannot check a
-pose). On such a frame a pose of an object the ground truth does not list is a pose of an absent object,
-and wrong.
+diameter. In a run with ground truth every frame counts as annotated for the run's objects (ingest keeps the
+ground truth of the run's objects in every frame it reads, as :mod:`benchmarks.cycling_log` assumes too), so a
+pose of an object the ground truth does not list in its frame is a pose of an absent object, and wrong.
 
 - ok precision: the share of ok poses that are correct;
 - ok recall: the share of ground-truth instances that got a correct ok pose;
@@ -35,15 +35,15 @@ SCORED_STATUSES = ("ok", "low_confidence")
 POSE_COLUMNS = ("frame_id", "obj_name", "status", "confidence", "present", "adds_m", "correct")
 
 
-def _gt_keys(gt: pd.DataFrame) -> tuple[set[str], set[tuple[str, str]]]:
-    return set(gt["frame_id"]), set(zip(gt["frame_id"], gt["obj_name"], strict=True))
+def _gt_keys(gt: pd.DataFrame) -> set[tuple[str, str]]:
+    return set(zip(gt["frame_id"], gt["obj_name"], strict=True))
 
 
 def pose_table(
     poses: pd.DataFrame, gt: pd.DataFrame, points: Mapping[str, np.ndarray], diameters: Mapping[str, float]
 ) -> pd.DataFrame:
-    """One row per (frame, object) pair with a pose among :data:`SCORED_STATUSES` on a frame with ground truth
-    (an ok row before a low-confidence one, then the most confident).
+    """One row per (frame, object) pair with a pose among :data:`SCORED_STATUSES` (an ok row before a
+    low-confidence one, then the most confident).
 
     Args:
         poses: ``poses.parquet`` rows (frame_id, obj_name, status, confidence, R, t_m).
@@ -55,9 +55,8 @@ def pose_table(
         :data:`POSE_COLUMNS`: ``present`` (the ground truth lists the object in that frame), ``adds_m`` (ADD-S
         to the truth, metres; +inf when absent) and ``correct`` (present and ADD-S < 0.2 d).
     """
-    frames, present = _gt_keys(gt)
-    rows = poses[poses["status"].isin(SCORED_STATUSES) & poses["frame_id"].isin(frames)]
-    rows = metrics.pick_estimates(rows)
+    present = _gt_keys(gt)
+    rows = metrics.pick_estimates(poses[poses["status"].isin(SCORED_STATUSES)])
     truth = {(g["frame_id"], g["obj_name"]): g for g in gt.to_dict("records")}
     out = []
     for r in rows.to_dict("records"):
@@ -78,10 +77,10 @@ def pose_table(
 
 
 def absent_pairs(poses: pd.DataFrame, gt: pd.DataFrame) -> pd.DataFrame:
-    """The estimated (frame, object) pairs on frames with ground truth whose object the ground truth does not
-    list: frame_id, obj_name, ``ok`` (the pair's picked row is ok)."""
-    frames, present = _gt_keys(gt)
-    pairs = metrics.pick_estimates(poses[poses["frame_id"].isin(frames)])
+    """The estimated (frame, object) pairs whose object the ground truth does not list in that frame:
+    frame_id, obj_name, ``ok`` (the pair's picked row is ok)."""
+    present = _gt_keys(gt)
+    pairs = metrics.pick_estimates(poses)
     keys = list(zip(pairs["frame_id"], pairs["obj_name"], strict=True))
     absent = pairs[[k not in present for k in keys]]
     return pd.DataFrame(
@@ -94,7 +93,7 @@ class Trust:
     """Precision and recall of ok for one group of poses (an object, or all of them)."""
 
     ok_precision: float
-    """Correct ok poses / ok poses on frames with ground truth (NaN without any)."""
+    """Correct ok poses / ok poses (NaN without any)."""
     ok_recall: float
     """Ground-truth instances with a correct ok pose / instances (NaN without any)."""
     n_ok_absent: int
