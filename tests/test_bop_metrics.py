@@ -10,11 +10,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SHARED_DATA
+import trimesh
+from conftest import DEMO, SHARED_DATA
 from scipy.spatial import cKDTree
 
+from batchpose.core.model import diameter
+from batchpose.io.sources import open_frames
 from batchpose.report import bop_metrics as bm
-from batchpose.report import metrics, precision
+from batchpose.report import bop_scoring, metrics, precision
+from batchpose.report.runs import RunData
 
 #: The shared data (``../shared/data`` beside the repository, or ``$BATCHPOSE_SHARED_DATA``).
 DATA = Path(os.environ.get("BATCHPOSE_SHARED_DATA", SHARED_DATA))
@@ -116,8 +120,6 @@ def test_vsd_of_shifted_and_deeper_renders():
 def test_symmetries_map_the_real_mesh_onto_itself(name):
     """Each discretised symmetry moves the model points onto the mesh (nearest dense-surface sample within
     5 % of the diameter); the same turns about the other two axes do not (a check that the axis is right)."""
-    import trimesh
-
     folder = DATA / "ycb_models" / name
     mesh = trimesh.load(folder / "textured.obj", force="mesh", process=False, skip_materials=True)
     surface = cKDTree(trimesh.sample.sample_surface(mesh, 20000, seed=0)[0])
@@ -198,3 +200,39 @@ def test_precision_recall_and_absent_objects():
     assert s.loc["pooled", "n_absent_pairs"] == 3
     assert precision.min_confidence("pipeline:\n  min_confidence: 0.3\n") == 0.3
     assert precision.min_confidence("name: x\n") is None
+
+
+# ---------------------------------------------------------------------------------- VSD through a run
+
+
+def test_vsd_of_a_run_reads_depth_and_renders_the_model(tmp_path):
+    """Two demo frames with depth: the true pose scores AR_VSD 1; one 30 mm too deep fails the taus up to 30
+    mm (6 of 10, so about 0.4); without the pose the instance scores 0."""
+    spec = {"format": "ycbv", "root": str(DEMO / "ycbv")}
+    frames = [f for _, f in zip(range(2), open_frames(spec, tmp_path), strict=False)]
+    gt = pd.DataFrame(
+        [
+            {
+                "frame_id": f.frame_id,
+                "obj_name": p.obj_name,
+                "R": p.cam_from_model[:3, :3].ravel(),
+                "t_m": p.cam_from_model[:3, 3],
+            }
+            for f in frames
+            for p in f.gt
+            if p.obj_name == "009_gelatin_box"
+        ]
+    )
+    assert len(gt) == 2 and all(f.has_depth for f in frames)
+    deeper = gt.assign(t_m=[gt["t_m"][0], gt["t_m"][1] * (1 + 0.03 / np.linalg.norm(gt["t_m"][1]))])
+    poses = deeper.assign(status="ok", confidence=0.9)
+    mesh = DEMO / "models" / "009_gelatin_box" / "textured.obj"
+    objects = {"009_gelatin_box": {"mesh": str(mesh), "points": None, "diameter_m": None}}
+    run = RunData(tmp_path, poses, gt, None, objects, manifest={"frames": spec})
+    diam = {"009_gelatin_box": diameter(trimesh.load(mesh, force="mesh", process=False).vertices)}
+    ar, why = bop_scoring.vsd_recalls(run, gt, diam)
+    assert why == "" and ar is not None
+    assert ar[0] == 1.0 and 0.3 <= ar[1] <= 0.5
+    run.poses = poses.iloc[:1]  # the second instance without an estimate
+    ar, _ = bop_scoring.vsd_recalls(run, gt, diam)
+    assert ar is not None and ar.tolist() == [1.0, 0.0]
