@@ -353,6 +353,25 @@ def test_html_content(report):
     assert "gallery-note" not in html
 
 
+def test_ok_pose_of_an_absent_object_is_a_false_positive(tmp_path):
+    """Without obj_b's ground truth in f000, its ok pose there is a pose of an absent object: wrong for the
+    precision, counted in the verdict's absent line."""
+    run = make_run(tmp_path)
+    gt = pd.read_parquet(run / "gt.parquet")
+    gt[~((gt["frame_id"] == "f000") & (gt["obj_name"] == "obj_b"))].to_parquet(run / "gt.parquet")
+    out = report_stage.main(None, None, run)
+    s = pd.read_csv(out / "summary.csv").set_index("obj_name")
+    assert s.loc["obj_b", ["n_ok_absent", "n_absent_pairs"]].tolist() == [1, 1]
+    assert s.loc["obj_a", ["n_ok_absent", "n_absent_pairs"]].tolist() == [0, 0]
+    # obj_b: ok in f000 (absent), f001 and f002 (right); its instances f001, f002, f003.
+    assert s.loc["obj_b", "ok_precision"] == pytest.approx(2 / 3) and s.loc["obj_b", "ok_recall"] == pytest.approx(
+        2 / 3
+    )
+    html = (out / "index.html").read_text()
+    assert re.search(r'<span id="verdict-absent" class="wrong"><b>1</b> ok poses of objects absent', html)
+    assert "of 1 (frame, absent object) pairs estimated (100.0 %)" in html and "verdict-unchecked" not in html
+
+
 def test_overlay_draws_at_projected_pose():
     rgb = np.zeros((H, W, 3), np.uint8)
     pts = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
