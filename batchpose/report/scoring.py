@@ -306,7 +306,7 @@ class Verdict:
     adds_auc: float = float("nan")
     add_auc: float = float("nan")
     ok_precision: float = float("nan")
-    """Share of the ok poses (on frames with ground truth) whose ADD-S is below 0.2 d."""
+    """Share of the ok poses whose ADD-S is below 0.2 d (one of an absent object is wrong)."""
     ok_recall: float = float("nan")
     """Share of the ground-truth instances that got an ok pose with ADD-S below 0.2 d."""
     ar: float = float("nan")
