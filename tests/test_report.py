@@ -264,6 +264,24 @@ def test_summary_csv(report):
     assert pairs.loc["obj_b"].tolist() == [3, 3, 1, 0]
     assert pairs.loc["pooled"].tolist() == pairs.loc["mean"].tolist() == [7, 6, 1, 1]
     assert list(s.columns[:5]) == ["n_pairs", "n_pairs_ok", "n_ok_wrong", "n_pairs_failed", "n"]
+    # BOP ARs (no depth images here, so no VSD). obj_a: exact, exact, 10 mm sideways, failed. The shift is an
+    # MSSD of 10 mm: below 9 of the 10 thresholds 0.05 d .. 0.5 d (d = 123 mm); its 3.0-3.7 px in the image
+    # (200 px focal, 0.54-0.66 m deep) are below 8 of 1.25 .. 12.5 px (5 .. 50 px x 160 / 640).
+    # obj_b: exact, 0.3 m away, exact, missing.
+    assert "ar_vsd" not in s.columns
+    assert s.loc["obj_a", "ar_mssd"] == pytest.approx((1 + 1 + 0.9 + 0) / 4)
+    assert s.loc["obj_a", "ar_mspd"] == pytest.approx((1 + 1 + 0.8 + 0) / 4)
+    assert s.loc["obj_a", "ar"] == pytest.approx((1 + 1 + 0.85 + 0) / 4)
+    # obj_b's 0.3 m along the line of sight moves its image by only 12.2 px: below the top MSPD threshold
+    # (12.5 px), so it scores 0.1 there (MSPD cannot see depth), 0 under MSSD.
+    assert s.loc["obj_b", "ar_mssd"] == pytest.approx(0.5) and s.loc["obj_b", "ar_mspd"] == pytest.approx(0.525)
+    assert s.loc["mean", "ar"] == s.loc["pooled", "ar"] == pytest.approx((0.7125 + 0.5125) / 2)
+    # ok precision / recall (correct: ADD-S < 0.2 d): obj_a 3 of 3 ok correct, 3 of 4 instances; obj_b 2 of
+    # 3, 2 of 4; pooled 5 of 6, 5 of 8; mean of the objects' values.
+    expected = {"obj_a": (1.0, 0.75), "obj_b": (2 / 3, 0.5), "pooled": (5 / 6, 5 / 8), "mean": (5 / 6, 0.625)}
+    for obj, (p, r) in expected.items():
+        assert (s.loc[obj, "ok_precision"], s.loc[obj, "ok_recall"]) == (pytest.approx(p), pytest.approx(r)), obj
+    assert s["n_ok_absent"].sum() == 0 and s["n_absent_pairs"].sum() == 0  # only ground-truth objects asked
 
 
 def test_frames_csv(report):
@@ -280,6 +298,11 @@ def test_frames_csv(report):
     assert b.loc["f003", "status"] == "missing"
     assert b.loc["f001", "status"] == "ok" and b.loc["f001", "add_m"] == pytest.approx(0.3)
     assert b.loc["f001", "adds_m"] > 0.19
+    # The BOP errors per instance: the 10 mm shift, a missed pose as +inf with recall 0.
+    assert a.loc["f002", "mssd_mm"] == pytest.approx(10.0) and 3.0 < a.loc["f002", "mspd_px"] < 3.75
+    assert math.isinf(a.loc["f003", "mssd_mm"]) and a.loc["f003", "ar"] == 0.0
+    assert b.loc["f001", "mssd_mm"] == pytest.approx(300.0) and b.loc["f001", "ar"] == pytest.approx(0.05)
+    assert a.loc["f000", "ar_mssd"] == a.loc["f000", "ar_mspd"] == a.loc["f000", "ar"] == 1.0
 
 
 def _near(img: np.ndarray, bgr: tuple[int, int, int], tol: int = 40) -> int:
@@ -298,8 +321,14 @@ def test_html_content(report):
         assert re.search(rf'<details id="details-{part}"><summary>', html), part
     assert html.index('id="verdict"') < html.index("<section")
     imgs = _imgs(html)
+    assert re.search(
+        r'ok precision <b id="verdict-ok-precision">0.833</b> · ok recall <b id="verdict-ok-recall">0.625</b>', html
+    )
+    assert '<th class="bop">AR MSSD</th>' in html and "AR VSD" not in html
+    assert "VSD left out: 4 of 4 frames have no depth image" in html  # why, in the run section's notes
     for id_ in ("plot-curves", "plot-errors", "plot-confidence", "plot-values"):
         assert _decodes(imgs[id_]).shape[1] >= 500
+    assert _decodes(imgs["plot-pr"]).shape[1] >= 400  # one small figure
     if not HAVE_DATASETS:
         assert 'id="gallery-note"' in html
         return
@@ -322,6 +351,25 @@ def test_html_content(report):
     # Both colours are drawn: ground truth green and the estimate orange (BGR here; JPEG: nearly).
     assert _near(worst, (60, 200, 40)) > 50 and _near(worst, (0, 140, 255)) > 50
     assert "gallery-note" not in html
+
+
+def test_ok_pose_of_an_absent_object_is_a_false_positive(tmp_path):
+    """Without obj_b's ground truth in f000, its ok pose there is a pose of an absent object: wrong for the
+    precision, counted in the verdict's absent line."""
+    run = make_run(tmp_path)
+    gt = pd.read_parquet(run / "gt.parquet")
+    gt[~((gt["frame_id"] == "f000") & (gt["obj_name"] == "obj_b"))].to_parquet(run / "gt.parquet")
+    out = report_stage.main(None, None, run)
+    s = pd.read_csv(out / "summary.csv").set_index("obj_name")
+    assert s.loc["obj_b", ["n_ok_absent", "n_absent_pairs"]].tolist() == [1, 1]
+    assert s.loc["obj_a", ["n_ok_absent", "n_absent_pairs"]].tolist() == [0, 0]
+    # obj_b: ok in f000 (absent), f001 and f002 (right); its instances f001, f002, f003.
+    assert s.loc["obj_b", "ok_precision"] == pytest.approx(2 / 3) and s.loc["obj_b", "ok_recall"] == pytest.approx(
+        2 / 3
+    )
+    html = (out / "index.html").read_text()
+    assert re.search(r'<span id="verdict-absent" class="wrong"><b>1</b> ok poses of objects absent', html)
+    assert "of 1 (frame, absent object) pairs estimated (100.0 %)" in html and "verdict-unchecked" not in html
 
 
 def test_overlay_draws_at_projected_pose():
@@ -410,6 +458,11 @@ def test_compare(tmp_path):
     assert table.loc[0, "add_recall_01d"] == pytest.approx(75.0)
     assert table.loc[1, "add_recall_01d"] == pytest.approx(62.5)
     assert math.isnan(table.loc[2, "add_auc_pooled"]) and table.loc[2, "n_ok"] == 6
+    # ADD-S lets a box slide along its own faces, so the 50 mm pose stays correct (ADD-S < 0.2 d) for the
+    # precision and recall of ok; its MSSD (50 mm = 0.41 d) passes 2 of 10 thresholds instead of 9 (10 mm).
+    assert table.loc[:1, "ok_precision"].tolist() == [1.0, 1.0]
+    assert table.loc[:1, "ok_recall"].tolist() == [pytest.approx(6 / 8)] * 2
+    assert table.loc[0, "ar_pooled"] > table.loc[1, "ar_pooled"]
     html = (out / "index.html").read_text()
     imgs = _imgs(html)
     assert set(imgs) == {"plot-compare-adds", "plot-compare-add"} and 'id="compare-table"' in html
@@ -842,6 +895,13 @@ def test_verdict_counts_pairs_and_groups_failures():
     assert report_html.verdict_text(v) == (
         "8 (frame, object) pairs: 5 ok (1 wrong: ADD-S > 0.1 d), 3 failed (not found 1: too few matches 1; "
         "hidden 1; other 1: weird new 1); ADD-S AUC 61.5, ADD AUC 42.0 (pooled, 5 instances)"
+    )
+    # With the precision, recall and AR columns, and ok poses of absent objects, the verdict says them too.
+    trust = {"ok_precision": 0.8, "ok_recall": 0.5, "ar": 0.4567, "n_ok_absent": 2, "n_absent_pairs": 8}
+    v = scoring.verdict(pairs, 4, summary.assign(**trust))
+    assert (v.ok_precision, v.ok_recall, v.ar, v.n_ok_absent, v.n_absent_pairs) == (0.8, 0.5, 0.4567, 2, 8)
+    assert report_html.verdict_text(v).endswith(
+        "; ok precision 0.800, recall 0.500 (ADD-S < 0.2 d); BOP AR 0.457; 2 ok of 8 pairs of absent objects"
     )
     counts = scoring.with_pair_counts(summary, pairs, has_gt=True).set_index("obj_name")
     assert counts.loc["a", list(scoring.PAIR_COLUMNS)].tolist() == [5, 3, 1, 2]

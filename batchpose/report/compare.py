@@ -84,7 +84,8 @@ def _counts_row(run: RunData, label: str) -> dict[str, Any]:
 
 
 def _accuracy_columns(summary: pd.DataFrame) -> dict[str, Any]:
-    """A scored run's mean and pooled AUCs, pooled recalls and median errors, and each object's AUCs."""
+    """A scored run's mean and pooled AUCs, pooled recalls and median errors, BOP AR and the precision and
+    recall of ok (pooled), and each object's AUCs."""
     s = summary.set_index("obj_name")
     out = {
         "n_instances": int(s.loc["pooled", "n"]),
@@ -96,6 +97,9 @@ def _accuracy_columns(summary: pd.DataFrame) -> dict[str, Any]:
         "add_recall_01d": s.loc["pooled", "add_recall_01d"],
         "median_rot_err_deg": s.loc["pooled", "median_rot_err_deg"],
         "median_trans_err_mm": s.loc["pooled", "median_trans_err_mm"],
+        "ar_pooled": s.loc["pooled"].get("ar", np.nan),
+        "ok_precision": s.loc["pooled"].get("ok_precision", np.nan),
+        "ok_recall": s.loc["pooled"].get("ok_recall", np.nan),
     }
     for obj in s.index.drop(["mean", "pooled"]):
         out[f"adds_auc[{obj}]"] = s.loc[obj, "adds_auc"]

@@ -3,7 +3,8 @@
 Accuracy-threshold curves (runs side by side, or one small panel per object), error histograms, confidence
 against error (one small panel per object), the confidence histogram of a run without ground truth, each
 object's status along the run's time axis (log time for one log, else frame order) and its ADD-S or
-confidence along it (one small panel per object).
+confidence along it (one small panel per object), and the precision-recall curve of the poses as the
+confidence threshold sweeps.
 """
 
 from __future__ import annotations
@@ -417,3 +418,29 @@ def _adds_panel(ax, x: np.ndarray, scored: tuple[np.ndarray, np.ndarray], sel: n
     if np.isfinite(diameter_m):
         ax.axhline(100.0 * diameter_m, color="black", ls="--", lw=0.8)
     ax.set_yscale("log")
+
+
+def pr_figure(curve) -> str:
+    """Precision against recall of the run's poses as the confidence threshold sweeps
+    (:class:`batchpose.report.precision.PrCurve`), the run's own threshold and its ok poses marked."""
+    fig = _new_figure(4.6, 3.4)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(curve.recall, curve.precision, "-", color="#4c72b0", lw=1.6, marker=".", ms=3, label="confidence ≥ t")
+    at = curve.thresholds >= curve.default_threshold if curve.default_threshold is not None else None
+    if at is not None and at.any():
+        i = int(np.flatnonzero(at)[-1])  # thresholds descend: the poses kept at the run's threshold
+        ax.plot(curve.recall[i], curve.precision[i], "o", color="#dd8452", ms=11, mfc="none", mew=1.8,
+                label=f"t = min_confidence {curve.default_threshold:g}")  # fmt: skip
+    r, p = curve.ok_point
+    if np.isfinite(r) and np.isfinite(p):
+        ax.plot(r, p, "x", color="#2f7d32", ms=8, mew=2, label="the run's ok poses")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("recall (instances with a correct pose)", fontsize=8.5)
+    ax.set_ylabel("precision (correct poses)", fontsize=8.5)
+    ax.set_title("Precision vs recall as the confidence threshold t sweeps\ncorrect: ADD-S < 0.2 d", fontsize=9)
+    ax.tick_params(labelsize=7.5)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left", fontsize=7.5, frameon=False)
+    fig.tight_layout()
+    return _fig_png(fig)

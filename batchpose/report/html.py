@@ -26,7 +26,7 @@ import pandas as pd
 import yaml
 
 from batchpose.core.poses import STATUSES
-from batchpose.report import figures, metrics
+from batchpose.report import figures, metrics, precision
 from batchpose.report.figures import Curve
 from batchpose.report.overlays import COLOR_EST, COLOR_GT
 from batchpose.report.runs import RunData
@@ -47,6 +47,9 @@ COMPARE_SHOWN = (
     "add_recall_01d",
     "median_rot_err_deg",
     "median_trans_err_mm",
+    "ar_pooled",
+    "ok_precision",
+    "ok_recall",
     "time_per_pair_s",
 )
 COMPARE_HEADERS = {
@@ -59,6 +62,9 @@ COMPARE_HEADERS = {
     "add_recall_01d": "ADD < 0.1d (%)",
     "median_rot_err_deg": "median rot (°)",
     "median_trans_err_mm": "median trans (mm)",
+    "ar_pooled": "BOP AR (pooled)",
+    "ok_precision": "ok precision",
+    "ok_recall": "ok recall",
     "time_per_pair_s": "s / (frame, object)",
     "run": "run",
     "n_frames": "frames",
@@ -154,7 +160,7 @@ def report_page(
         verdict: the first line (:func:`batchpose.report.scoring.verdict`).
         overlays, overlay_note: :func:`batchpose.report.overlays.gallery`'s result.
     """
-    results = _gt_results(summary, per_instance) if per_instance is not None else _detections(run, summary)
+    results = _gt_results(run, summary, per_instance) if per_instance is not None else _detections(run, summary)
     axis = figures.time_axis(run.poses, run.frames)
     return _render(
         "report.html.j2",
@@ -198,6 +204,12 @@ def verdict_text(v: Verdict) -> str:
     text += f", {v.n_failed} failed" + (f" ({_failed_text(v)})" if v.failed else "")
     if v.n_wrong is not None:
         text += f"; ADD-S AUC {fmt(v.adds_auc)}, ADD AUC {fmt(v.add_auc)} (pooled, {v.n_instances} instances)"
+        if np.isfinite(v.ok_precision) or np.isfinite(v.ok_recall):
+            text += f"; ok precision {fmt(v.ok_precision, 3)}, recall {fmt(v.ok_recall, 3)} (ADD-S < 0.2 d)"
+        if np.isfinite(v.ar):
+            text += f"; BOP AR {fmt(v.ar, 3)}"
+        if v.n_absent_pairs:
+            text += f"; {v.n_ok_absent} ok of {v.n_absent_pairs} pairs of absent objects"
     return text
 
 
@@ -206,8 +218,8 @@ def _failures_text(row: Mapping[str, Any]) -> str:
     return ", ".join(parts) or "–"
 
 
-def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, Any]:
-    """The results table's rows, the paper's numbers and the accuracy plots."""
+def _gt_results(run: RunData, summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, Any]:
+    """The results table's rows, the paper's numbers, the accuracy plots and the precision-recall curve."""
     labels = {"mean": "mean of objects", "pooled": "pooled (all instances)"}  # the aggregate rows
     rows = [
         {
@@ -224,9 +236,21 @@ def _gt_results(summary: pd.DataFrame, per_instance: pd.DataFrame) -> dict[str, 
         "curves": figures.curves_figure(per_instance),  # one panel per object
         "errors": figures.error_figure(per_instance),
         "confidence": figures.confidence_figure(per_instance),  # one panel per object
+        "pr": _pr_plot(run, len(per_instance)),
     }
     means = " · ".join(f"{k} {a:.1f} / {b:.1f}" for k, (a, b) in PAPER_MEANS.items())
-    return {"results": rows, "paper_note": PAPER_NOTE, "paper_means": means, "plots": plots}
+    bop = [c for c in ("ar_vsd", "ar_mssd", "ar_mspd", "ar") if c in summary.columns]
+    return {"results": rows, "paper_note": PAPER_NOTE, "paper_means": means, "plots": plots, "bop_columns": bop}
+
+
+def _pr_plot(run: RunData, n_instances: int) -> str | None:
+    """The precision-recall curve of the run's poses (None without ground truth or poses to sweep)."""
+    if run.gt is None or not len(run.gt):
+        return None
+    points, diameters = run.model_points(run.gt["obj_name"])
+    table = precision.pose_table(run.poses, run.gt, points, diameters)
+    curve = precision.pr_curve(table, n_instances, precision.min_confidence(run.config_text))
+    return figures.pr_figure(curve) if curve is not None else None
 
 
 def _detections(run: RunData, summary: pd.DataFrame) -> dict[str, Any]:

@@ -19,7 +19,7 @@ import pandas as pd
 from batchpose.core.poses import STAGES, STATUSES
 from batchpose.errors import DataError
 from batchpose.io.bop_csv import bop_to_poses, read_bop_csv
-from batchpose.report import metrics
+from batchpose.report import bop_scoring, metrics, precision
 from batchpose.report.runs import RunData
 
 log = logging.getLogger("batchpose")
@@ -105,11 +105,16 @@ def status_label(status: str) -> str:
 
 
 def score_run(run: RunData) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Score a run with ground truth: ``(per_instance, summary)`` of :func:`metrics.score`, the summary with
-    the paper's numbers beside ours (``paper_adds_auc``, ``paper_add_auc``)."""
+    """Score a run with ground truth: ``(per_instance, summary)`` of :func:`metrics.score`, with the BOP
+    errors and average recalls (:func:`bop_scoring.with_bop_columns`), the precision and recall of ok
+    (:func:`precision.trust_columns`) and the paper's numbers beside ours (``paper_adds_auc``,
+    ``paper_add_auc``)."""
     assert run.gt is not None  # a run with ground truth
     points, diameters = run.model_points(run.gt["obj_name"])
     per_instance, summary = metrics.score(run.poses, run.gt, points, diameters)
+    per_instance, summary = bop_scoring.with_bop_columns(run, per_instance, summary)
+    poses = precision.pose_table(run.poses, run.gt, points, diameters)
+    summary = precision.trust_columns(summary, poses, precision.absent_pairs(run.poses, run.gt))
     return per_instance, _paper_columns(summary)
 
 
@@ -300,6 +305,16 @@ class Verdict:
     n_instances: int = 0
     adds_auc: float = float("nan")
     add_auc: float = float("nan")
+    ok_precision: float = float("nan")
+    """Share of the ok poses whose ADD-S is below 0.2 d (one of an absent object is wrong)."""
+    ok_recall: float = float("nan")
+    """Share of the ground-truth instances that got an ok pose with ADD-S below 0.2 d."""
+    ar: float = float("nan")
+    """BOP average recall, pooled over the instances (mean of AR_VSD, AR_MSSD, AR_MSPD as available)."""
+    n_ok_absent: int = 0
+    """Ok poses of objects the ground truth says are absent from their frame."""
+    n_absent_pairs: int = 0
+    """Estimated (frame, object) pairs of absent objects (``targets: all``)."""
 
 
 def verdict(pairs: pd.DataFrame, n_frames: int, summary: pd.DataFrame | None = None) -> Verdict:
@@ -327,4 +342,9 @@ def verdict(pairs: pd.DataFrame, n_frames: int, summary: pd.DataFrame | None = N
         n_instances=int(pooled["n"]),
         adds_auc=float(pooled["adds_auc"]),
         add_auc=float(pooled["add_auc"]),
+        ok_precision=float(pooled.get("ok_precision", np.nan)),
+        ok_recall=float(pooled.get("ok_recall", np.nan)),
+        ar=float(pooled.get("ar", np.nan)),
+        n_ok_absent=int(pooled.get("n_ok_absent", 0)),
+        n_absent_pairs=int(pooled.get("n_absent_pairs", 0)),
     )
