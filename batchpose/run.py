@@ -113,7 +113,9 @@ def _targets(job: Job) -> str:
     return targets
 
 
-def _template_inputs(job: Job, frames_index: pd.DataFrame, obj_ids: dict[str, int], jobs: int) -> TemplateInputs:
+def _template_inputs(
+    job: Job, frames_index: pd.DataFrame, obj_ids: dict[str, int], jobs: int, targets: str
+) -> TemplateInputs:
     man, conf = job.manifest, job.conf
     K0, width, height = _template_camera(frames_index, man.path, conf.max_image_side_px)
     models = {o.name: load_mesh(o.mesh, conf.mesh, name=o.name, cache_dir=job.cache_dir) for o in man.objects}
@@ -127,6 +129,7 @@ def _template_inputs(job: Job, frames_index: pd.DataFrame, obj_ids: dict[str, in
         jobs,
         mesh_paths={o.name: o.mesh for o in man.objects},
         points={o.name: o.points for o in man.objects},
+        presence=targets != "annotations" and conf.match.presence_votes > 0,
     )
 
 
@@ -165,7 +168,7 @@ def main(
         frames_index = pd.read_parquet(frames_path)
         targets = _targets(job)
         _check_frames(job, source, frames_index, targets)
-        templates = _template_inputs(job, frames_index, obj_ids, jobs)
+        templates = _template_inputs(job, frames_index, obj_ids, jobs, targets)
         objects_path = build_templates.main(conf, templates, job.run_dir, overwrite)
         with _backend(backend, scheduler, jobs) as jl_backend:
             inputs = estimate.EstimateInputs(

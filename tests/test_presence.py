@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,6 +15,7 @@ from batchpose.config import load_estimator_config, load_yaml
 from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.library import load
 from batchpose.io.mesh import load_mesh
+from batchpose.method import presence
 from batchpose.method.estimator import PoseEstimator
 from batchpose.stages.build_templates import build_library
 from tests.conftest import CRACKER, DEMO, ROOT
@@ -38,7 +41,7 @@ def gated_run(tmp_path_factory, cache_dir):
         )
     )
     out = base / "run"
-    run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1, report=False, overrides=["match.presence_votes=10"])
+    run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1, report=False)  # the default check
     return pd.read_parquet(out / "poses.parquet")
 
 
@@ -48,13 +51,15 @@ def test_absent_objects_are_absent_without_the_expensive_steps(gated_run):
         assert rows.loc[there, "status"] == "ok"
         gone = rows.drop(index=there).iloc[0]
         assert gone["status"] == "absent", gone["reason"]
-        assert "keypoints agree on where it would be, need 10 (match.presence_votes)" in gone["reason"]
+        need = load_estimator_config(load_yaml(PIPELINE)).match.presence_votes
+        assert f"keypoints agree on where it would be, need {need} (match.presence_votes)" in gone["reason"]
         assert gone["time_fine_s"] == 0 and gone["time_refine_s"] == 0 and gone["time_plane_s"] == 0
 
 
 def test_a_present_object_is_estimated_as_without_the_check(gated_run, cache_dir):
     """The check only adds a record: the present objects' poses are those of an estimator without it."""
     conf = load_estimator_config(load_yaml(PIPELINE))
+    conf = dataclasses.replace(conf, match=dataclasses.replace(conf.match, presence_votes=0))
     source = YcbvFrameSource(DEMO / "ycbv")
     frames = {f.frame_id: f for f in source if f.frame_id in FRAMES}
     K, w, h = frames["0000/000001"].camera.K, 640, 480
@@ -76,3 +81,29 @@ def test_no_presence_check_where_the_ground_truth_lists_the_objects(tmp_path, ca
     run.main(PIPELINE, manifest, out, cache_dir=cache_dir, jobs=1, report=False, limit=1,
              overrides=["match.presence_votes=1000"])  # fmt: skip
     assert pd.read_parquet(out / "poses.parquet")["status"].tolist() == ["ok"]
+
+
+def test_the_joint_index_is_kept_beside_the_libraries(cache_dir):
+    """The presence check's index over all objects is built once and kept, like each library's own: a second
+    build loads it and answers the same; a keypoint of one object's template counts for that object."""
+    conf = load_estimator_config(load_yaml(PIPELINE)).match
+    libs = {n: load(p) for n, p in _demo_libraries(cache_dir).items()}
+    first = presence.joint_index(libs, conf)
+    assert first is not None
+    kept = list(next(iter(libs.values())).folder.parent.glob("presence-*/flann-*.idx"))
+    assert len(kept) == 1 and kept[0].with_name(kept[0].name + ".sha256").exists()
+    again = presence.joint_index(libs, conf)
+    assert again is not None
+    queries = np.vstack([lib.desc[:50] for lib in libs.values()])
+    a, b = presence.joint_nearest(first, queries, conf), presence.joint_nearest(again, queries, conf)
+    assert np.array_equal(a.idx, b.idx) and np.allclose(a.dist, b.dist)
+    owners = first.owner[a.idx[:, 0]]
+    assert (owners == np.repeat(np.arange(len(libs)), 50)).mean() > 0.95
+
+
+def _demo_libraries(cache_dir) -> dict:
+    """The demo objects' template libraries (built into the shared test cache when not there yet)."""
+    conf = load_estimator_config(load_yaml(PIPELINE))
+    K = next(iter(YcbvFrameSource(DEMO / "ycbv"))).camera.K
+    meshes = {"003_cracker_box": CRACKER, "009_gelatin_box": DEMO / "models" / "009_gelatin_box" / "textured.obj"}
+    return {n: build_library(load_mesh(m), conf, K, 640, 480, cache_dir) for n, m in meshes.items()}

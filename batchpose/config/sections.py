@@ -124,13 +124,16 @@ class MatchConfig:
     """"none": whole image; "gt_box": oracle box from ground truth (evaluation only, never default)."""
     roi_margin_px: int = knob(24, ge=0)
     """``roi: gt_box``: the box of the template keypoints projected at the true pose, grown by this many pixels."""
-    presence_votes: int = knob(0, ge=0)
-    """Which objects are in the frame, decided before the expensive steps: an object whose frame keypoints
-    agree on no location with at least this many votes (the locator's Hough vote on centre, size and
-    in-plane rotation, Lowe 2004; chance matches scatter) is reported ``absent``, without the fine pass,
-    the retries, refinement or the plane search. 0: off (every object gets the full estimate). Only where
-    the run does not know which objects a frame shows (``targets: all``): under ``targets: annotations``
-    the ground truth lists them."""
+    presence_votes: int = knob(5, ge=0)
+    """Which objects are in the frame, decided once per frame before the expensive steps
+    (:mod:`batchpose.method.presence`): the frame's keypoints are looked up once in one index over every
+    object's templates; a keypoint counts for the object of its nearest template descriptor when it passes
+    the ratio test against the nearest of another object (or another point of the same one), and an object
+    whose keypoints agree on no location (centre, size, in-plane rotation) with at least this many votes is
+    reported ``absent``, without the matching passes, retries and refinement (the plane search may still
+    find it: ``plane.search_absent``). 0: off (every object gets the full estimate). Only where the run
+    does not know which objects a frame shows (``targets: all``): under ``targets: annotations`` the ground
+    truth lists them."""
 
 
 @dataclass(frozen=True)
@@ -372,6 +375,11 @@ class TrackConfig:
     reports/BENCHMARKS.md): 32 frames without refreshes 93.8 ADD AUC at +0.72x the floor per further
     object; 64 with ``refresh_every`` 32: 94.9 at +0.47x; 128: tracks drift (ADD < 0.1 d 93 -> 88.5 %)
     and a short log splits into too few tasks to share between workers."""
+    min_chunks: int = knob(4, ge=1)
+    """A run of fewer than ``min_chunks`` x ``chunk_frames`` frames is cut into ``min_chunks`` shorter
+    tasks, so that a short run keeps every worker busy (17 frames in one 64-frame task left one of two
+    workers idle). It depends on the run's frame count only, not on ``--jobs``: results stay the same for
+    any number of workers."""
 
 
 @dataclass(frozen=True)
@@ -452,6 +460,10 @@ class PlaneConfig:
 
     enabled: bool = True
     """Search the support plane for objects SIFT missed."""
+    search_absent: bool = True
+    """Search it also for the objects ``match.presence_votes`` found no SIFT evidence of (status ``absent``):
+    an object with little texture can be there without any SIFT evidence, and the plane search is the
+    path that finds it by colour and shape. False: an absent object costs only the presence check."""
     min_objects: int = knob(2, ge=2)
     """Fewest confidently found objects that define a support plane ..."""
     min_confidence: float = knob(0.5, ge=0, le=1)

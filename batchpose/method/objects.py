@@ -1,9 +1,9 @@
 """What the estimator knows of each object, and makes once: :class:`Objects`.
 
 The template libraries, meshes, renderer and ids it was given; and, built on first use and kept for the
-process, each library's descriptor index, its model voxel grid, the mesh's half-turn flips, extent, surface
-samples, silhouettes, stable faces, convex hull and plane-search target; the SIFT detectors. Nothing here
-depends on a frame or a sequence of frames.
+process, each library's descriptor index and the joint index over all of them, its model voxel grid, the
+mesh's half-turn flips, extent, surface samples, silhouettes, stable faces, convex hull and plane-search
+target; the SIFT detectors. Nothing here depends on a frame or a sequence of frames.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from batchpose.method.depth import Surface
 from batchpose.method.depth_search import Silhouettes
 from batchpose.method.features import make_sift, to_gray
 from batchpose.method.plane import Target, resting_faces, stable_faces
+from batchpose.method.presence import JointIndex, joint_index
 from batchpose.method.templates import TemplateLibrary
 from batchpose.method.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
@@ -50,6 +51,7 @@ class Objects:
         self.sift = make_sift(conf.features)
         self._retry_sift: dict[float, object] = {}
         self._lib_index: dict[str, object] = {}
+        self._joint: list[JointIndex | None] = []
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flips: dict[str, list[np.ndarray]] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
@@ -102,6 +104,13 @@ class Objects:
             lib = self.libraries[name]
             self._lib_index[name] = flann_index(lib.desc, self.conf.match, keep_in=lib.folder)
         return self._lib_index[name]
+
+    def joint_index(self) -> JointIndex | None:
+        """The index over every object's template descriptors that the presence check asks
+        (:mod:`batchpose.method.presence`; built on first use)."""
+        if not self._joint:
+            self._joint.append(joint_index(self.libraries, self.conf.match))
+        return self._joint[0]
 
     def weights(self, name: str, X: np.ndarray) -> np.ndarray:
         """(N,) geometry-aware weights of the object's model points ``X`` (N, 3) (``weights.mode``)."""

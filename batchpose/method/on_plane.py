@@ -16,7 +16,11 @@ from batchpose.method.records import NOT_FOUND, pose_of
 from batchpose.method.sequence import SearchPose, Sequence, Stamp, previous_pose, search_due
 
 #: What the plane search replaced, by the record's status before it.
-_REPLACED = {"ok": "a weak SIFT pose", "low_confidence": "a low-confidence SIFT pose"}
+_REPLACED = {
+    "ok": "a weak SIFT pose",
+    "low_confidence": "a low-confidence SIFT pose",
+    "absent": "no SIFT evidence of it",
+}
 
 
 def use_plane(objects: Objects, frame: Frame, rgb: np.ndarray, records: list[PoseRecord], sequence: Sequence) -> None:
@@ -29,7 +33,11 @@ def use_plane(objects: Objects, frame: Frame, rgb: np.ndarray, records: list[Pos
     lost = [
         r
         for r in records
-        if (r.status in NOT_FOUND or (r.ok and not r.tracked and r.confidence < pc.min_confidence))
+        if (
+            r.status in NOT_FOUND
+            or (r.status == "absent" and pc.search_absent)
+            or (r.ok and not r.tracked and r.confidence < pc.min_confidence)
+        )
         and r.obj_name in objects.models
         and (not tracking or search_due(sequence, sequence.placed, r.obj_name, frame, objects.conf.track))
     ]

@@ -16,6 +16,7 @@ from batchpose.core.frames import Camera
 from batchpose.errors import ImageError
 from batchpose.method.correspondences import flann_index, nearest_with_rival
 from batchpose.method.objects import Objects
+from batchpose.method.presence import JointNearest
 from batchpose.method.records import Replaced
 
 
@@ -73,6 +74,8 @@ class Shot:
         nearest: obj_name -> [(descriptors, :func:`nearest_with_rival` of them)]: each keypoint set's library
             query, asked once by the view vote and the locator.
         replaced: the retries' replacements (:data:`batchpose.method.records.Replaced`).
+        joint: the whole frame's keypoints' query of the joint index (:mod:`batchpose.method.presence`),
+            asked once for every object's presence check.
     """
 
     gray: np.ndarray
@@ -82,6 +85,7 @@ class Shot:
     lab: LazyLab | None
     nearest: dict[str, list[tuple[np.ndarray, tuple]]] = field(default_factory=dict)
     replaced: Replaced = field(default_factory=dict)
+    joint: JointNearest | None = None
 
 
 def nearest_templates(objects: Objects, shot: Shot, name: str, desc_q: np.ndarray) -> tuple | None:

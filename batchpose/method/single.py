@@ -16,14 +16,14 @@ import numpy as np
 from batchpose.core.frames import Camera, ObjectPose
 from batchpose.core.poses import PoseRecord
 from batchpose.errors import BatchposeError
-from batchpose.method.correspondences import locate
+from batchpose.method import presence
 from batchpose.method.features import detect_shapes, to_gray
 from batchpose.method.gnc_pnp import PnpResult
 from batchpose.method.hypotheses import alternative, planar_mirror, polish, refine
 from batchpose.method.objects import Objects
 from batchpose.method.passes import best, find_passes
 from batchpose.method.records import NOT_FOUND, Replaced, confidence, pose_of
-from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image, nearest_templates, query_index
+from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image, query_index
 
 
 def estimate_image(
@@ -74,9 +74,9 @@ def estimate_image(
 
 
 def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseRecord | None:
-    """``match.presence_votes``: the object's ``absent`` record when the frame keypoints' Hough votes for its
-    location (:func:`~batchpose.method.correspondences.locate`, from the library query the view vote
-    shares) peak below that many; None when it may be there (or the check is off)."""
+    """``match.presence_votes``: the object's ``absent`` record when the frame keypoints that count for it
+    agree on no location with that many votes (:mod:`batchpose.method.presence`); None when it may be there
+    (or the check is off)."""
     need = objects.conf.match.presence_votes
     if need <= 0:
         return None
@@ -91,14 +91,15 @@ def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseReco
 
 
 def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> int:
-    """The most frame keypoints that agree on one location of the object (0: none matched)."""
-    nearest = nearest_templates(objects, shot, name, keys.desc)
-    if nearest is None or keys.shapes is None:
+    """The most frame keypoints that count for the object and agree on one location of it (0: none)."""
+    joint = objects.joint_index()
+    if joint is None or keys.shapes is None or len(keys.desc) == 0:
         return 0
-    lib, cam = objects.libraries[name], shot.camera
-    found = locate(keys.xy, keys.shapes, keys.desc, objects.library_index(name), lib, objects.conf.match,
-                   cam.width, cam.height, min_votes=1, peaks=1, nearest=nearest)  # fmt: skip
-    return found[0].votes if found else 0
+    if shot.joint is None:
+        shot.joint = presence.joint_nearest(joint, keys.desc, objects.conf.match)
+    cam = shot.camera
+    return presence.votes(joint, shot.joint, name, objects.libraries[name], keys.xy, keys.shapes, keys.desc,
+                          objects.conf.match, cam.width, cam.height)  # fmt: skip
 
 
 def retry(objects: Objects, shot: Shot, records: list[PoseRecord], skip: frozenset[str]) -> None:

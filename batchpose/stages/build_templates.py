@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from batchpose.config import EstimatorConfig
 from batchpose.core.model import ObjectModel
+from batchpose.io import library
 from batchpose.io.files import write_text_atomic
 from batchpose.io.library import (
     is_cached,
@@ -26,6 +27,7 @@ from batchpose.io.library import (
     library_key,
     save,
 )
+from batchpose.method import presence
 from batchpose.method.templates import render_templates
 from batchpose.method.weights import model_voxel_grid
 from batchpose.stages.workers import loky_options
@@ -143,6 +145,8 @@ class TemplateInputs:
         jobs: libraries built in parallel.
         mesh_paths: object name -> the mesh file the manifest names (reported in ``objects.json``).
         points: object name -> the model points file the manifest names (reported in ``objects.json``).
+        presence: build the presence check's joint index too (:mod:`batchpose.method.presence`), once here
+            rather than in every worker at once.
     """
 
     models: dict[str, ObjectModel]
@@ -154,6 +158,7 @@ class TemplateInputs:
     jobs: int = 1
     mesh_paths: dict[str, Path] = field(default_factory=dict)
     points: dict[str, Path | None] = field(default_factory=dict)
+    presence: bool = False
 
 
 def main(conf: EstimatorConfig, inputs: TemplateInputs, run_dir: Path, overwrite: bool = False) -> Path:
@@ -164,6 +169,10 @@ def main(conf: EstimatorConfig, inputs: TemplateInputs, run_dir: Path, overwrite
     m = inputs.models
     lib_dirs = build_all(m, conf, inputs.K, inputs.width, inputs.height, inputs.cache_dir, jobs=inputs.jobs)
     log.info("template libraries ready for %d objects in %.1f s", len(m), time.perf_counter() - t0)
+    if inputs.presence:
+        t0 = time.perf_counter()
+        presence.joint_index({name: library.load(d) for name, d in lib_dirs.items()}, conf.match)
+        log.info("presence index over %d objects ready in %.1f s", len(m), time.perf_counter() - t0)
     objects = {
         name: {
             "obj_id": inputs.obj_ids[name],

@@ -1,9 +1,10 @@
 """Stage: estimate every (frame, object) pair in parallel, resumably.
 
-Frames go to the workers in chunks of consecutive frames (``track.chunk_frames`` while tracking, so a track
-runs within a chunk and never across two: results do not depend on ``--jobs`` or the backend; RANSAC and the
-FLANN trees are seeded per frame). Each worker loads the template libraries once and keeps its estimator for
-the whole run; each chunk starts a fresh :class:`~batchpose.method.sequence.Sequence`. Progress is saved as
+Frames go to the workers in chunks of consecutive frames (``track.chunk_frames`` while tracking, fewer in a
+short run so that it makes ``track.min_chunks`` chunks; a track runs within a chunk and never across two:
+results do not depend on ``--jobs`` or the backend; RANSAC and the FLANN trees are seeded per frame). Each
+worker loads the template libraries once and keeps its estimator for the whole run; each chunk starts a
+fresh :class:`~batchpose.method.sequence.Sequence`. Progress is saved as
 :mod:`batchpose.stages.checkpoints` describes, so a killed run resumes where it was, and the shards are
 merged into ``run_dir/poses.parquet``.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import math
 import time
 from collections import Counter
 from collections.abc import Iterator
@@ -206,7 +208,7 @@ def main(conf: EstimatorConfig, inputs: EstimateInputs, run_dir: Path, overwrite
     for p in shard_dir.glob("*.tmp"):  # half-written file of a killed run: never trusted
         p.unlink()
     done = done_pairs(shard_dir)
-    chunk_size = max(inputs.chunk_size, conf.track.chunk_frames) if conf.track.enabled else inputs.chunk_size
+    chunk_size = task_frames(conf, inputs)
     pending = _chunks(inputs, done, chunk_size, conf.track.max_gap_s if conf.track.enabled else None)
     first = next(pending, None)
     # (ingest removes poses.parquet whenever the frames it covers change)
@@ -222,6 +224,18 @@ def main(conf: EstimatorConfig, inputs: EstimateInputs, run_dir: Path, overwrite
     write_parquet_atomic(df, out)
     _log_counts(df, new_pairs, time.perf_counter() - t0)
     return out
+
+
+def task_frames(conf: EstimatorConfig, inputs: EstimateInputs) -> int:
+    """Frames per worker task: ``track.chunk_frames`` while tracking (``inputs.chunk_size`` otherwise), cut
+    so that the run makes at least ``track.min_chunks`` tasks."""
+    size = max(inputs.chunk_size, conf.track.chunk_frames) if conf.track.enabled else inputs.chunk_size
+    n = _n_frames(inputs)
+    return max(1, min(size, math.ceil(n / conf.track.min_chunks))) if n else size
+
+
+def _n_frames(inputs: EstimateInputs) -> int:
+    return inputs.source.count() if inputs.limit is None else min(inputs.source.count(), inputs.limit)
 
 
 def clear(run_dir: Path) -> None:
@@ -251,7 +265,7 @@ def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, 
     saves = str(shard_dir) if inputs.backend == "loky" else None
     tasks = (joblib.delayed(_task)(chunk, setup, saves) for chunk in chunks)
 
-    total = inputs.source.count() if inputs.limit is None else min(inputs.source.count(), inputs.limit)
+    total = _n_frames(inputs)
     new_pairs = 0
     loky = loky_options() if inputs.backend == "loky" else {}
     n_jobs = inputs.jobs if inputs.backend == "loky" else -1
