@@ -393,6 +393,14 @@ class DepthConfig:
     first iteration ..."""
     gate_final_m: float = knob(0.01, gt=0)
     """... narrowing linearly to this at the last."""
+    ray_align: bool = True
+    """Before the ICP and before any check, move the pose along the viewing ray through the object's centre
+    (its translation scaled, so its projection stays) to where the rendered surface meets the sensor's depth
+    on most of the silhouette (:func:`batchpose.method.depth.along_ray`): a monocular pose 2-5 cm too far at
+    ~1 m is beyond the ICP's first gate (``gate_m``) and would otherwise be judged, and rejected, where the
+    sensor sees nothing of it."""
+    ray_range: float = knob(0.15, gt=0, lt=1)
+    """How far the ray alignment may move the object: this fraction of its distance, nearer or farther."""
     min_pixels: int = knob(50, ge=6)
     """Fewer object pixels with a sensor reading than this: the pose is left as the RGB estimate gave it."""
     max_points: int = 1500

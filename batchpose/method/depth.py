@@ -4,6 +4,10 @@ A monocular pose is weakest along the viewing ray: the object's image size fixes
 to its distance, and on real YCB-Video frames our RGB poses sit 1-3 % too far (reports/ACCURACY.md). Where
 the log has a depth image registered to the colour image, each pose the RGB estimator finds is
 
+0. moved along its viewing ray (``ray_align``, :func:`along_ray`): the translation scaled, which keeps the
+   object's projection, so that the rendered surface meets the sensor's readings on the silhouette. A pose
+   2-5 cm too far at ~1 m (typical of real frames) is beyond the ICP's first gate, and judged where it was
+   the sensor would see nothing of it: step 1 and 2 take the moved pose;
 1. checked: the mesh is rendered at the pose; where the sensor sees *past* the rendered surface on most of
    the silhouette, the pose puts the object where there is none (readings nearer than the surface are
    occluders and do not count); where almost no reading is near the rendered surface, the object is seen
@@ -11,7 +15,8 @@ the log has a depth image registered to the colour image, each pose the RGB esti
 2. aligned: sensor points on and around the silhouette are registered to points sampled on the mesh by
    robust point-to-plane ICP (Huber weights, a 3D distance gate narrowing from ``gate_m`` to
    ``gate_final_m``, Levenberg damping so that what the depth cannot see, such as a can's turn about its
-   axis, stays as the RGB estimate had it), and checked again at the aligned pose. Two renders per pose.
+   axis, stays as the RGB estimate had it), and checked again at the aligned pose. Two to four renders per
+   pose.
 
 Sensor points are back-projected with K alone (no distortion model), as the renderer draws.
 """
@@ -31,6 +36,14 @@ from batchpose.config import DepthConfig
 SURFACE_POINTS = 4000
 #: Readings needed on a silhouette to judge the pose (fewer than ``DepthConfig.min_pixels`` to align it).
 MIN_CHECK_PIXELS = 10
+#: Step of the ray alignment's search over depth offsets (metres).
+RAY_STEP_M = 0.002
+#: The ray alignment moves a pose only where that puts at least this many times as many readings on its
+#: surface: a pose off sideways rather than along the ray is left to the ICP (moved first, it ended 2 cm
+#: off where the ICP alone aligned it to 0.2 mm in tests/test_depth.py's near miss).
+RAY_GAIN = 2.0
+#: Ray alignments per pose, each from a new render (the silhouette shrinks or grows as the object moves).
+RAY_PASSES = 2
 
 
 @dataclass(frozen=True)
@@ -53,8 +66,10 @@ class DepthFit:
     """The outcome for one pose.
 
     Attributes:
-        cam_from_model: the aligned pose (the input pose when not aligned).
-        aligned: the alignment was made and kept.
+        cam_from_model: the aligned pose: the ICP's, else the input pose moved along its viewing ray (the
+            input pose when neither moved it).
+        aligned: the ICP alignment was made and kept.
+        ray_m: how far the object's centre was moved along its viewing ray, metres (positive: farther).
         contradicted: the depth shows the pose is wrong (see :func:`align_to_depth`).
         see_through: fraction of the silhouette's pixels with a reading where the sensor sees past the surface.
         agree: fraction of them whose reading is within a quarter of the diameter of the rendered surface.
@@ -63,6 +78,7 @@ class DepthFit:
 
     cam_from_model: np.ndarray
     aligned: bool = False
+    ray_m: float = 0.0
     contradicted: bool = False
     see_through: float = 0.0
     agree: float = 0.0
@@ -102,6 +118,70 @@ def _agreement(depth_m: np.ndarray, rendered_m: np.ndarray, diameter_m: float, c
     return see_through, agree, ""
 
 
+def along_ray(
+    gap_m: np.ndarray, lo_m: float, hi_m: float, conf: DepthConfig, gain: float = RAY_GAIN
+) -> tuple[float, int]:
+    """The depth offset that best puts a rendered surface onto the sensor's readings: a robust 1-D fit.
+
+    Every offset ``d`` from ``lo_m`` to ``hi_m`` (steps of ``RAY_STEP_M``) counts the silhouette's readings
+    within ``conf.gate_final_m`` of the surface moved by ``d``; the offset with the most (the mode of the
+    gaps, ties to the smallest move) is refined to the median gap of its readings. It is used only where it
+    counts ``gain`` times as many readings as offset 0 does. Readings of the background
+    or of an occluder form clusters of their own and win only where they outnumber the object's own (the
+    check after the move then sees the sensor past the object on most of it). A penalty for readings the
+    moved surface would see through was tried and dropped: where the gaps spread (a tilted face a little off
+    sideways) it only ever grows toward the near end, so it pushes the pose as far as the range allows.
+
+    Args:
+        gap_m: (N,) sensor minus rendered depth on the silhouette's pixels with a reading, metres.
+        lo_m, hi_m: the offsets allowed, metres (lo_m <= 0 <= hi_m).
+        gain: see above (1 for a pose already moved: a refinement).
+
+    Returns:
+        (offset in metres, readings within the band at it); (0.0, readings at 0) where no offset fits
+        ``MIN_CHECK_PIXELS`` readings, or ``gain`` times as many as offset 0.
+    """
+    band = conf.gate_final_m
+    g = np.sort(gap_m)
+    d = np.concatenate([[0.0], np.arange(lo_m, hi_m + 0.5 * RAY_STEP_M, RAY_STEP_M)])
+    inside = np.searchsorted(g, d + band) - np.searchsorted(g, d - band)
+    best = int(np.argmax(inside - 1e-3 * np.abs(d)))  # ties: the smallest move
+    if inside[best] < MIN_CHECK_PIXELS or inside[best] < gain * inside[0]:
+        return 0.0, int(inside[0])
+    offset = float(d[best])
+    for _ in range(2):  # centre the offset on its readings (a flat face counts the same over 2 * band)
+        near = g[np.abs(g - offset) < band]
+        if near.size:
+            offset = float(np.clip(np.median(near), lo_m, hi_m))
+    return offset, int(np.sum(np.abs(g - offset) < band))
+
+
+def _ray_passes(T: np.ndarray, depth_m: np.ndarray, rendered: np.ndarray, render_depth, surface: Surface, conf):
+    """(pose, metres moved, its render): ``T`` moved along the ray through the object's centre by
+    :func:`along_ray`, ``RAY_PASSES`` times from a new render, within ``conf.ray_range`` of its distance."""
+    centre = T[:3, :3] @ surface.points.mean(axis=0) + T[:3, 3]
+    z0 = float(centre[2])
+    if z0 <= 0:
+        return T, 0.0, rendered
+    out, z = T, z0
+    for _ in range(RAY_PASSES):
+        seen = (rendered > 0) & (depth_m > 0)
+        if seen.sum() < MIN_CHECK_PIXELS:
+            break
+        gap = (depth_m[seen] - rendered[seen]).astype(np.float64)
+        lo, hi = (1 - conf.ray_range) * z0 - z, (1 + conf.ray_range) * z0 - z
+        offset, _ = along_ray(gap, lo, hi, conf, RAY_GAIN if z == z0 else 1.0)
+        if abs(offset) < 0.5 * RAY_STEP_M:
+            break
+        scale = 1.0 + offset / z
+        out = out.copy()
+        out[:3, 3] += (scale - 1.0) * (out[:3, :3] @ surface.points.mean(axis=0) + out[:3, 3])
+        z *= scale
+        rendered = render_depth(out)
+    moved = float(np.linalg.norm(centre) * (z / z0 - 1.0))
+    return out, moved, rendered
+
+
 def align_to_depth(
     T: np.ndarray,
     depth_m: np.ndarray,
@@ -113,8 +193,9 @@ def align_to_depth(
 ) -> DepthFit:
     """Align pose ``T`` to the sensor depth and check the result (see the module docstring).
 
-    The check is made at the aligned pose when the alignment succeeds (a pose a few pixels off, which the
-    sensor partly sees past, is aligned first), else at ``T``.
+    With ``conf.ray_align`` the pose is first moved along its viewing ray (:func:`along_ray`); the ICP starts
+    there. The check is made at the ICP's pose when the alignment succeeds (a pose a few pixels off, which the
+    sensor partly sees past, is aligned first), else at the ray-aligned pose (``T`` without ``ray_align``).
 
     Args:
         T: (4, 4) model->camera pose from the RGB estimate.
@@ -126,6 +207,10 @@ def align_to_depth(
     """
     fit = DepthFit(np.asarray(T, dtype=np.float64).copy())
     rendered = render_depth(fit.cam_from_model)
+    if conf.ray_align:
+        fit.cam_from_model, fit.ray_m, rendered = _ray_passes(
+            fit.cam_from_model, depth_m, rendered, render_depth, surface, conf
+        )
     n_seen = int(((rendered > 0) & (depth_m > 0)).sum())
     if n_seen < conf.min_pixels:
         # Too few to align to; enough to see that a tiny, far-away pose is behind everything in the frame.

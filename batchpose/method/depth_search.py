@@ -309,7 +309,8 @@ def search(
             first, and kept without searching the frame when it passes the checks.
     """
     # Hypotheses start further off than an RGB pose; light damping lets the depth turn them.
-    wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0, damping=SEARCH_DAMPING)
+    # Hypotheses are placed at the depth their size implies and aligned by the ICP alone (no ray alignment).
+    wide = dataclasses.replace(conf, max_shift=0.5, max_turn_deg=45.0, damping=SEARCH_DAMPING, ray_align=False)
     bins = colour_bins(rgb)
     frame_counts = np.bincount(bins.ravel(), minlength=N_BINS)
 
