@@ -24,7 +24,8 @@ from batchpose.config.rules import RULE_KEYS
 from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose (last: depth.ray_align and
-# depth.ray_range added, ray_align on). The template libraries' cache keys hash only the sections that make a library (io.library).
+# depth.ray_range added, ray_align on). The template libraries' cache keys hash only the sections that make a
+# library (io.library).
 DEFAULT_HASH = "b1dbeff41bc0a106"
 DEFAULT_LAYOUT_HASH = "5c8ba56b2e470026"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {

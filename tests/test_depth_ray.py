@@ -82,6 +82,11 @@ def test_poses_where_the_object_is_not_stay_rejected(gelatin):
     floating = _fit(gelatin, T, wall)
     assert floating.contradicted and floating.ray_m == 0.0
     assert "sees more than 3 cm past it" in floating.reason
+    # A plain wall 6 cm behind the object's centre, within reach: laid onto it the box would fit the readings
+    # on its silhouette, but nothing is behind its outline there (it does not stand out), so it stays.
+    wall = np.full((480, 640), _centre(model, T)[2] + 0.06, np.float32)
+    flush = _fit(gelatin, T, wall)
+    assert flush.contradicted and flush.ray_m == 0.0
     # The pose 25 % farther than the object in front of it, beyond depth.ray_range (15 %): behind it.
     behind = _fit(gelatin, _pushed(model, T, 0.25 * _centre(model, T)[2]), _scene_depth(model, T, wall_m=1.0))
     assert behind.contradicted and "only 0% of the object's pixels have a reading within" in behind.reason
