@@ -109,3 +109,5 @@ def test_along_ray_takes_the_largest_cluster_of_readings():
     # ... nor one whose readings spread (off sideways: the ICP's case), nor beyond the range it is given.
     assert along_ray(rng.uniform(-0.03, 0.12, 900), -0.15, 0.15, conf)[0] == 0.0
     assert along_ray(obj, -0.02, 0.02, conf)[0] == 0.0
+    # Readings that go on past the range (a pose 17 % too far, as a real mustard bottle's was): not moved.
+    assert along_ray(rng.uniform(-0.3, -0.16, 2400), -0.19, 0.19, conf)[0] == 0.0
