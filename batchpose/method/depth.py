@@ -15,8 +15,8 @@ the log has a depth image registered to the colour image, each pose the RGB esti
 2. aligned: sensor points on and around the silhouette are registered to points sampled on the mesh by
    robust point-to-plane ICP (Huber weights, a 3D distance gate narrowing from ``gate_m`` to
    ``gate_final_m``, Levenberg damping so that what the depth cannot see, such as a can's turn about its
-   axis, stays as the RGB estimate had it), and checked again at the aligned pose. Two to four renders per
-   pose.
+   axis, stays as the RGB estimate had it), and checked again at the aligned pose. Two renders per pose,
+   three where the ray alignment moved it.
 
 Sensor points are back-projected with K alone (no distortion model), as the renderer draws.
 """
@@ -47,8 +47,6 @@ RAY_GAIN = 2.0
 #: behind it: true poses on ycbv_dev's real frames 0.19-0.8, the gelatin box lying on the table the least;
 #: a box moved onto a plain wall 0.0-0.07); else it is judged where it was.
 RAY_MIN_EDGE = 0.1
-#: Ray alignments per pose, each from a new render (the silhouette shrinks or grows as the object moves).
-RAY_PASSES = 2
 
 
 @dataclass(frozen=True)
@@ -123,9 +121,7 @@ def _agreement(depth_m: np.ndarray, rendered_m: np.ndarray, diameter_m: float, c
     return see_through, agree, ""
 
 
-def along_ray(
-    gap_m: np.ndarray, lo_m: float, hi_m: float, conf: DepthConfig, gain: float = RAY_GAIN
-) -> tuple[float, int]:
+def along_ray(gap_m: np.ndarray, lo_m: float, hi_m: float, conf: DepthConfig) -> tuple[float, int]:
     """The depth offset that best puts a rendered surface onto the sensor's readings: a robust 1-D fit.
 
     Every offset ``d`` from ``lo_m`` to ``hi_m`` (steps of ``RAY_STEP_M``) is scored by the silhouette's
@@ -134,17 +130,16 @@ def along_ray(
     ``hi_m``: a far background counts against no offset); nearer readings are occluders and count neither
     way. So a half-hidden object is placed by its visible half unless the occluder covers over twice as
     much of it. The best offset (ties to the smallest move) is refined to the median gap of the readings
-    within the band, and used only where it has ``gain`` times as many of them as offset 0 (a pose off
+    within the band, and used only where it has ``RAY_GAIN`` times as many of them as offset 0 (a pose off
     sideways, whose readings spread along the ray, is left to the ICP).
 
     Args:
         gap_m: (N,) sensor minus rendered depth on the silhouette's pixels with a reading, metres.
         lo_m, hi_m: the offsets allowed, metres (lo_m <= 0 <= hi_m).
-        gain: see above (1 for a pose already moved: a refinement).
 
     Returns:
         (offset in metres, readings within the band at it); (0.0, readings at 0) where no offset scores
-        better than 0 with ``MIN_CHECK_PIXELS`` readings and ``gain`` times as many as offset 0, or where
+        better than 0 with ``MIN_CHECK_PIXELS`` readings and ``RAY_GAIN`` times as many as offset 0, or where
         the best lies within the band of either end of the range (a pose whose readings go on past the
         range, like a mustard bottle placed 17 % too far on a real ycbv_dev frame, is judged where it is).
     """
@@ -155,7 +150,7 @@ def along_ray(
     seen_through = np.maximum(np.searchsorted(g, hi_m + band) - np.searchsorted(g, d + past, side="right"), 0)
     score = inside - seen_through
     best = int(np.argmax(score - 1e-3 * np.abs(d)))  # ties: the smallest move
-    if inside[best] < MIN_CHECK_PIXELS or inside[best] < gain * inside[0] or score[best] <= score[0]:
+    if inside[best] < MIN_CHECK_PIXELS or inside[best] < RAY_GAIN * inside[0] or score[best] <= score[0]:
         return 0.0, int(inside[0])
     offset = float(d[best])
     for _ in range(2):  # centre the offset on its readings (a flat face counts the same over 2 * band)
@@ -167,32 +162,25 @@ def along_ray(
     return offset, int(np.sum(np.abs(g - offset) < band))
 
 
-def _ray_passes(T: np.ndarray, depth_m: np.ndarray, rendered: np.ndarray, render_depth, surface: Surface, conf):
+def _ray_align(T: np.ndarray, depth_m: np.ndarray, rendered: np.ndarray, render_depth, surface: Surface, conf):
     """(pose, metres moved, its render): ``T`` moved along the ray through the object's centre by
-    :func:`along_ray`, ``RAY_PASSES`` times from a new render, within ``conf.ray_range`` of its distance."""
+    :func:`along_ray`, within ``conf.ray_range`` of its distance; ``T`` itself where that does not move it or
+    the moved object would not stand out (:func:`_stands_out`). One render more for a moved pose."""
     centre = T[:3, :3] @ surface.points.mean(axis=0) + T[:3, 3]
-    z0 = float(centre[2])
-    if z0 <= 0:
+    z = float(centre[2])
+    seen = (rendered > 0) & (depth_m > 0)
+    if z <= 0 or seen.sum() < MIN_CHECK_PIXELS:
         return T, 0.0, rendered
-    out, z, first = T, z0, rendered
-    for _ in range(RAY_PASSES):
-        seen = (rendered > 0) & (depth_m > 0)
-        if seen.sum() < MIN_CHECK_PIXELS:
-            break
-        gap = (depth_m[seen] - rendered[seen]).astype(np.float64)
-        lo, hi = (1 - conf.ray_range) * z0 - z, (1 + conf.ray_range) * z0 - z
-        offset, _ = along_ray(gap, lo, hi, conf, RAY_GAIN if z == z0 else 1.0)
-        if abs(offset) < 0.5 * RAY_STEP_M:
-            break
-        scale = 1.0 + offset / z
-        out = out.copy()
-        out[:3, 3] += (scale - 1.0) * (out[:3, :3] @ surface.points.mean(axis=0) + out[:3, 3])
-        z *= scale
-        rendered = render_depth(out)
-    if out is not T and _stands_out(depth_m, rendered, conf.gate_m) < RAY_MIN_EDGE:
-        return T, 0.0, first  # flush with what is around it: a pose on a wall or a table top, not an object
-    moved = float(np.linalg.norm(centre) * (z / z0 - 1.0))
-    return out, moved, rendered
+    gap = (depth_m[seen] - rendered[seen]).astype(np.float64)
+    offset, _ = along_ray(gap, -conf.ray_range * z, conf.ray_range * z, conf)
+    if offset == 0.0:
+        return T, 0.0, rendered
+    out = T.copy()
+    out[:3, 3] += offset / z * centre  # every surface point's depth moves by the offset; the centre's pixel stays
+    moved = render_depth(out)
+    if _stands_out(depth_m, moved, conf.gate_m) < RAY_MIN_EDGE:
+        return T, 0.0, rendered  # flush with what is around it: a pose on a wall or a table top, not an object
+    return out, offset / z * float(np.linalg.norm(centre)), moved
 
 
 def _stands_out(depth_m: np.ndarray, rendered: np.ndarray, margin_m: float) -> float:
@@ -235,7 +223,7 @@ def align_to_depth(
     fit = DepthFit(np.asarray(T, dtype=np.float64).copy())
     rendered = render_depth(fit.cam_from_model)
     if conf.ray_align:
-        fit.cam_from_model, fit.ray_m, rendered = _ray_passes(
+        fit.cam_from_model, fit.ray_m, rendered = _ray_align(
             fit.cam_from_model, depth_m, rendered, render_depth, surface, conf
         )
     n_seen = int(((rendered > 0) & (depth_m > 0)).sum())
