@@ -1,13 +1,13 @@
 """Align an RGB pose to a registered depth image (``depth.enabled``; batchpose's addition to GNC-Pose).
 
 A monocular pose is weakest along the viewing ray: the object's image size fixes only the ratio of its size
-to its distance, and on real YCB-Video frames our RGB poses sit 1-3 % too far (reports/ACCURACY.md). Where
+to its distance, and on real YCB-Video frames our RGB poses sit 1-4 % too far (reports/ACCURACY.md). Where
 the log has a depth image registered to the colour image, each pose the RGB estimator finds is
 
 0. moved along its viewing ray (``ray_align``, :func:`along_ray`): the translation scaled, which keeps the
    object's projection, so that the rendered surface meets the sensor's readings on the silhouette. A pose
    2-5 cm too far at ~1 m (typical of real frames) is beyond the ICP's first gate, and judged where it was
-   the sensor would see nothing of it: step 1 and 2 take the moved pose;
+   the sensor would see nothing of it: steps 1 and 2 take the moved pose;
 1. checked: the mesh is rendered at the pose; where the sensor sees *past* the rendered surface on most of
    the silhouette, the pose puts the object where there is none (readings nearer than the surface are
    occluders and do not count); where almost no reading is near the rendered surface, the object is seen
@@ -39,8 +39,8 @@ MIN_CHECK_PIXELS = 10
 #: Step of the ray alignment's search over depth offsets (metres).
 RAY_STEP_M = 0.002
 #: The ray alignment moves a pose only where that puts at least this many times as many readings on its
-#: surface: a pose off sideways rather than along the ray is left to the ICP (moved first, it ended 2 cm
-#: off where the ICP alone aligned it to 0.2 mm in tests/test_depth.py's near miss).
+#: surface: a pose whose readings spread along the ray (off sideways, or turned) is left to the ICP, which
+#: fits all six degrees of freedom, rather than moved on a slight majority.
 RAY_GAIN = 2.0
 #: A pose the ray alignment moved is kept only where at least this fraction of the readings just outside
 #: its silhouette lie ``gate_m`` beyond the surface next to them (the object stands out against what is

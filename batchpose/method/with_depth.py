@@ -1,6 +1,6 @@
-"""A registered depth image's use (``depth.enabled``, :func:`use_depth`): each pose checked against the depth
-and aligned to it (:func:`batchpose.method.depth.align_to_depth`); with ``depth.search``, each object then
-without a pose looked for by colour and depth (:func:`search_missing`,
+"""A registered depth image's use (``depth.enabled``, :func:`use_depth`): each pose moved along its viewing ray
+onto the depth, checked against it and aligned to it (:func:`batchpose.method.depth.align_to_depth`); with
+``depth.search``, each object then without a pose looked for by colour and depth (:func:`search_missing`,
 :func:`batchpose.method.depth_search.search`)."""
 
 from __future__ import annotations
