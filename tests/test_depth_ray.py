@@ -66,6 +66,16 @@ def test_a_pose_off_along_its_ray_is_aligned_not_rejected(gelatin, push_m):
     assert fit.see_through < 0.2 and fit.agree > 0.9
 
 
+def test_the_ray_alignment_is_kept_where_the_icp_is_not(gelatin):
+    """An ICP step the limits refuse (``max_shift``) leaves the pose where the ray alignment put it, checked
+    there: use_depth then reports it "moved ... along the viewing ray; not aligned: ..."."""
+    model, _, T, depth = gelatin
+    fit = _fit(gelatin, _pushed(model, T, 0.04), depth, max_shift=0.001)
+    assert not fit.aligned and not fit.contradicted and "not used" in fit.reason
+    assert fit.ray_m == pytest.approx(-0.04, abs=0.005)
+    assert abs(_along_ray_mm(model, fit.cam_from_model, T)) < 10
+
+
 def test_a_half_hidden_pose_is_aligned_to_its_visible_half(gelatin):
     """An occluder 8 cm nearer than the object's centre over the lower 40 % of its silhouette, within reach
     of the ray alignment (12 cm nearer than the pushed pose), is not where the pose goes."""
