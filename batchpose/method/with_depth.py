@@ -1,6 +1,6 @@
-"""A registered depth image's use (``depth.enabled``, :func:`use_depth`): each pose checked against the depth
-and aligned to it (:func:`batchpose.method.depth.align_to_depth`); with ``depth.search``, each object then
-without a pose looked for by colour and depth (:func:`search_missing`,
+"""A registered depth image's use (``depth.enabled``, :func:`use_depth`): each pose moved along its viewing ray
+onto the depth, checked against it and aligned to it (:func:`batchpose.method.depth.align_to_depth`); with
+``depth.search``, each object then without a pose looked for by colour and depth (:func:`search_missing`,
 :func:`batchpose.method.depth_search.search`)."""
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ def use_depth(
 ) -> None:
     """``depth.enabled``: check each found pose against the depth image of ``full`` (the frame as read;
     ``frame`` is it at the working size) and align it to the depth. Tracks keep following the RGB poses. A
-    pose the depth contradicts becomes pnp_failed; one it cannot align stays as it was, with the reason in
-    ``reason``; a low-confidence pose (``min_confidence``) it aligns is reported ok. With ``depth.search``,
-    an object then without a pose is looked for by colour and depth."""
+    pose the depth contradicts becomes pnp_failed; one the ICP cannot align keeps its ray alignment (or stays
+    as it was), with the reason in ``reason``; a low-confidence pose (``min_confidence``) the ICP aligns is
+    reported ok. With ``depth.search``, an object then without a pose is looked for by colour and depth."""
     dc = objects.conf.depth
     usable = [r for r in records if r.obj_name in objects.models and objects.renderer is not None]
     todo = [r for r in usable if r.ok or r.status == "low_confidence"]
@@ -93,6 +93,11 @@ def _align(objects: Objects, frame: Frame, depth_m: np.ndarray, todo: list[PoseR
             rec.cam_from_model = fit.cam_from_model
             if not rec.ok:
                 rec.status, rec.reason = "ok", f"RGB confidence {rec.confidence:.2f}, aligned to the depth image"
+        elif rec.ok and fit.ray_m:
+            rec.cam_from_model = fit.cam_from_model
+            rec.reason = (
+                f"moved {100 * fit.ray_m:+.1f} cm along the viewing ray to the depth; not aligned: {fit.reason}"
+            )
         elif rec.ok:
             rec.reason = f"depth not used: {fit.reason}: RGB pose"
         rec.timings["depth"] = t_decode + time.perf_counter() - t0
