@@ -90,7 +90,9 @@ def test_the_joint_index_is_kept_beside_the_libraries(cache_dir):
     libs = {n: load(p) for n, p in _demo_libraries(cache_dir).items()}
     first = presence.joint_index(libs, conf)
     assert first is not None
-    kept = list(next(iter(libs.values())).folder.parent.glob("presence-*/flann-*.idx"))
+    keep = presence.index_folder(libs)
+    assert keep is not None and keep.parent == next(iter(libs.values())).folder.parent
+    kept = list(keep.glob("flann-*.idx"))
     assert len(kept) == 1 and kept[0].with_name(kept[0].name + ".sha256").exists()
     again = presence.joint_index(libs, conf)
     assert again is not None

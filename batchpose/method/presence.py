@@ -60,11 +60,11 @@ def joint_index(libraries: dict[str, TemplateLibrary], conf: MatchConfig) -> Joi
     owner = np.concatenate([np.full(len(libraries[n].desc), i, np.int32) for i, n in enumerate(names)])
     local = np.concatenate([np.arange(len(libraries[n].desc)) for n in names])
     pts = np.vstack([libraries[n].pts3d for n in names]).astype(np.float32)
-    index = flann_index(desc, conf, keep_in=_keep_in(libraries))
+    index = flann_index(desc, conf, keep_in=index_folder(libraries))
     return None if index is None else JointIndex(names, index, desc, owner, local, pts)
 
 
-def _keep_in(libraries: dict[str, TemplateLibrary]) -> Path | None:
+def index_folder(libraries: dict[str, TemplateLibrary]) -> Path | None:
     """The folder the joint index is kept in: beside the libraries' folders, named by them (None when a
     library has no folder, or they are in different places)."""
     folders = [lib.folder for lib in libraries.values()]

@@ -12,6 +12,9 @@ from batchpose.errors import CameraError, ImageError
 #: Statuses of an object the frame shows no pose of: the retries, the depth search and the plane search look
 #: for it.
 NOT_FOUND = ("too_few_matches", "pnp_failed", "low_confidence")
+#: Statuses an object is searched for in (the depth and the plane search): no SIFT pose, or (``absent``) no SIFT
+#: evidence of it at all; an object with little texture can be there all the same.
+SEARCHED = (*NOT_FOUND, "absent")
 #: Statuses of a frame that could not be used at all (every track ends there).
 FAILED = ("bad_image", "bad_camera", "error")
 

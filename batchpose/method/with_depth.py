@@ -17,7 +17,7 @@ from batchpose.errors import ImageError
 from batchpose.method.depth import align_to_depth
 from batchpose.method.depth_search import search
 from batchpose.method.objects import Objects
-from batchpose.method.records import NOT_FOUND, pose_of
+from batchpose.method.records import SEARCHED, pose_of
 from batchpose.method.sequence import SearchPose, Sequence, Stamp, previous_pose, search_due
 
 log = logging.getLogger("batchpose")
@@ -34,7 +34,7 @@ def use_depth(
     dc = objects.conf.depth
     usable = [r for r in records if r.obj_name in objects.models and objects.renderer is not None]
     todo = [r for r in usable if r.ok or r.status == "low_confidence"]
-    if not todo and not (dc.search and any(r.status in NOT_FOUND for r in usable)):
+    if not todo and not (dc.search and any(r.status in SEARCHED for r in usable)):
         return
     t0 = time.perf_counter()
     try:
@@ -48,7 +48,7 @@ def use_depth(
         return
     t_decode = (time.perf_counter() - t0) / max(len(todo), 1)
     contradicted = _align(objects, frame, depth_m, todo, t_decode)
-    for rec in [r for r in usable if r.status in NOT_FOUND] if dc.search else []:
+    for rec in [r for r in usable if r.status in SEARCHED] if dc.search else []:
         if objects.tracking() and not search_due(sequence, sequence.found, rec.obj_name, frame, objects.conf.track):
             continue
         t0 = time.perf_counter()
