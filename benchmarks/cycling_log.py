@@ -9,7 +9,8 @@ in every frame (``targets: all``), timed whole-process against the decode + SIFT
    OpenCV's default threads;
 4. ``batchpose run`` (default ``--jobs`` unless given) in a fresh process, timed from start to exit;
 5. prints the whole-process ratio to the floor, time per (frame, object) pair by kind (absent: the frame's
-   ground truth does not list the object; present and estimated afresh; tracked) against the per-frame floor,
+   ground truth does not list the object; present and estimated afresh; tracked), in all and beyond the
+   frame's decode + SIFT (which its pairs share), that against the per-frame floor,
    the accuracy of the present pairs (ADD-S / ADD AUC, the run's own report) and the false positives
    (absent pairs reported ``ok``), with PASS/MISS against the targets of the speed issue.
 
@@ -137,11 +138,17 @@ def main() -> None:
     gt = pd.read_parquet(out / "gt.parquet")
     poses["kind"] = pair_kinds(poses, gt)
     per_frame = floor / n
+    # A pair's own cost: its time less the frame's decode and SIFT, which every pair of the frame records (the
+    # frame's SIFT is the least any of its pairs records: a retry adds its own detection's share).
+    poses["own_s"] = (
+        poses["time_total_s"] - poses["time_decode_s"] - poses.groupby("frame_id")["time_sift_s"].transform("min")
+    )
     rows = []
     for kind in ("absent", "present", "tracked"):
         sel = poses[poses["kind"] == kind]
-        t = float(sel["time_total_s"].mean()) if len(sel) else float("nan")
-        rows.append([kind, len(sel), int((sel["status"] == "ok").sum()), f"{t * 1e3:.0f}", f"{t / per_frame:.2f}"])
+        t, own = (float(sel[c].mean()) if len(sel) else float("nan") for c in ("time_total_s", "own_s"))
+        ok = int((sel["status"] == "ok").sum())
+        rows.append([kind, len(sel), ok, f"{t * 1e3:.0f}", f"{own * 1e3:.0f}", f"{own / per_frame:.2f}"])
     summary = pd.read_csv(out / "report" / "summary.csv")
     mean = summary[summary["obj_name"] == "mean"] if "mean" in set(summary["obj_name"]) else summary.tail(1)
     fp = poses[(poses["kind"] == "absent") & (poses["status"] == "ok")]
@@ -149,7 +156,7 @@ def main() -> None:
     print(f"# {machine()}; batchpose {code_version()}; pipeline {args.pipeline}; jobs {args.jobs or 'default'}")
     print(f"floor (decode + SIFT, one process): {floor:.1f} s = {per_frame * 1e3:.0f} ms/frame")
     print(f"whole process (batchpose run):      {wall:.1f} s = {wall / floor:.2f}x the floor")
-    print(table(rows, ["pair", "n", "ok", "ms/pair", "x floor/frame"]))
+    print(table(rows, ["pair", "n", "ok", "ms/pair", "ms/pair beyond the frame's SIFT", "x floor/frame"]))
     cols = [c for c in ("adds_auc", "add_auc") if c in mean]
     print(
         "accuracy of the present pairs (mean of objects): "
@@ -157,8 +164,8 @@ def main() -> None:
     )
     absent = int((poses["kind"] == "absent").sum())
     print(f"false positives: {len(fp)} of {absent} absent pairs ok ({100 * len(fp) / max(absent, 1):.1f} %)")
-    t_abs = float(poses.loc[poses["kind"] == "absent", "time_total_s"].mean())
-    t_pre = float(poses.loc[poses["kind"] == "present", "time_total_s"].mean())
+    t_abs = float(poses.loc[poses["kind"] == "absent", "own_s"].mean())
+    t_pre = float(poses.loc[poses["kind"] == "present", "own_s"].mean())
     print(target(wall / floor <= WHOLE_RATIO, f"whole process <= {WHOLE_RATIO:g}x floor"))
     print(target(t_abs / per_frame <= ABSENT_RATIO, f"absent pair <= {ABSENT_RATIO:g}x floor per frame"))
     print(target(t_pre / per_frame <= PRESENT_RATIO, f"present untracked pair <= {PRESENT_RATIO:g}x floor per frame"))
