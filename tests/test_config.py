@@ -26,17 +26,17 @@ from tests.conftest import ROOT
 # A pin changes only when a default, a field or a pipeline changes on purpose (last: match.presence_votes
 # on at 5, plane.search_absent and track.min_chunks added). The template libraries' cache keys hash only the
 # sections that make a library (io.library).
-DEFAULT_HASH = "476583e3d4c5ab61"
-DEFAULT_LAYOUT_HASH = "25945507fa38d9d8"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "83e181df9d5feb48"
+DEFAULT_LAYOUT_HASH = "54b21fd7363e6624"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "5875ac6c38cf2c4c",
-    "gnc_pose.yaml": "476583e3d4c5ab61",
-    "no_geom_weights.yaml": "8299c76a537f4284",
-    "oracle_roi.yaml": "b5c465f310f27e28",
-    "paper.yaml": "4c22b6454f2e842c",
-    "ransac_only.yaml": "3ab786f52fa26bb3",
-    "rgbd.yaml": "be0b456a82b98ce7",
-    "tp_ub.yaml": "44e6198f03ca91a2",
+    "fast.yaml": "04f64f17cdbbf725",
+    "gnc_pose.yaml": "83e181df9d5feb48",
+    "no_geom_weights.yaml": "7d695a4bd374a7c8",
+    "oracle_roi.yaml": "cd622270eab72e5d",
+    "paper.yaml": "5cc451e79962abbb",
+    "ransac_only.yaml": "f6b1b994d6e40c4b",
+    "rgbd.yaml": "678211128cdfe3f2",
+    "tp_ub.yaml": "4efb0e7f7403b213",
 }
 
 

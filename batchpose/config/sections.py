@@ -472,10 +472,12 @@ class PlaneConfig:
 
     enabled: bool = True
     """Search the support plane for objects SIFT missed."""
-    search_absent: bool = True
-    """Search it also for the objects ``match.presence_votes`` found no SIFT evidence of (status ``absent``):
-    an object with little texture can be there without any SIFT evidence, and the plane search is the
-    path that finds it by colour and shape. False: an absent object costs only the presence check."""
+    search_absent: bool = False
+    """Search it also for the objects ``match.presence_votes`` found no SIFT evidence of (status ``absent``).
+    An object with little texture can be there without any SIFT evidence (the mustard bottle's plain back in
+    ycbv_dev's video 0001, found only this way), but every absent object in a frame with a plane then costs a
+    plane search (seconds), and on the 12-object benchmark of reports/BENCHMARKS.md the searches put a large
+    marker on the table in 4 of 44 frames without one. Off: an absent object costs only the presence check."""
     min_objects: int = knob(2, ge=2)
     """Fewest confidently found objects that define a support plane ..."""
     min_confidence: float = knob(0.5, ge=0, le=1)
