@@ -253,8 +253,10 @@ def test_a_failing_plane_search_leaves_the_frame_its_poses(cracker_model, cracke
     recs = []
     for enabled in (True, False):
         conf = load_estimator_config(
-            {"features": {"n_features": 4}, "track": {"enabled": False}, "plane": {"enabled": enabled}}
-        )
+            # (without the presence check, which would make the object absent and skip the plane search)
+            {"features": {"n_features": 4}, "track": {"enabled": False}, "plane": {"enabled": enabled},
+             "match": {"presence_votes": 0}}
+        )  # fmt: skip
         est = PoseEstimator(conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model},
                             renderer=get_renderer())  # fmt: skip
         recs += est.estimate_frame(frame, [cracker_model.name])
