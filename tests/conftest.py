@@ -13,6 +13,17 @@ SHARED_DATA = ROOT.parent / "shared" / "data"
 CRACKER = DEMO / "models" / "003_cracker_box" / "textured.obj"
 GELATIN = DEMO / "models" / "009_gelatin_box" / "textured.obj"
 
+
+def rotation(axis: int, deg: float) -> np.ndarray:
+    """(3, 3) rotation by ``deg`` degrees about coordinate axis ``axis`` (0: x, 1: y, 2: z)."""
+    a = np.deg2rad(deg)
+    c, s = np.cos(a), np.sin(a)
+    i, j = [k for k in range(3) if k != axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
 # A canonical 640x480 camera for synthetic tests.
 K_SYN = np.array([[800.0, 0.0, 319.5], [0.0, 800.0, 239.5], [0.0, 0.0, 1.0]])
 

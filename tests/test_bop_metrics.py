@@ -11,7 +11,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import trimesh
-from conftest import DEMO, SHARED_DATA
 from scipy.spatial import cKDTree
 
 from batchpose.core.model import diameter
@@ -19,19 +18,11 @@ from batchpose.io.sources import open_frames
 from batchpose.report import bop_metrics as bm
 from batchpose.report import bop_scoring, metrics, precision
 from batchpose.report.runs import RunData
+from tests.conftest import DEMO, SHARED_DATA, rotation
 
 #: The shared data (``../shared/data`` beside the repository, or ``$BATCHPOSE_SHARED_DATA``).
 DATA = Path(os.environ.get("BATCHPOSE_SHARED_DATA", SHARED_DATA))
 K = np.array([[600.0, 0.0, 319.5], [0.0, 600.0, 239.5], [0.0, 0.0, 1.0]])
-
-
-def _rot(axis: int, deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    c, s = math.cos(a), math.sin(a)
-    i, j = [k for k in range(3) if k != axis]
-    R = np.eye(3)
-    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
-    return R
 
 
 def _cylinder(radius: float = 0.05, height: float = 0.14, n: int = 720) -> np.ndarray:
@@ -44,7 +35,7 @@ def _cylinder(radius: float = 0.05, height: float = 0.14, n: int = 720) -> np.nd
 CAN = _cylinder()
 CAN_SYMS = bm.symmetry_transforms("002_master_chef_can")
 T_GT = np.array([0.02, -0.01, 0.7])
-R_GT = _rot(0, 30) @ _rot(1, -20)
+R_GT = rotation(0, 30) @ rotation(1, -20)
 
 
 def test_identity_pose_has_no_error():
@@ -58,17 +49,17 @@ def test_identity_pose_has_no_error():
 
 def test_turn_about_the_cans_axis_is_no_mssd_error_but_is_an_add_error():
     assert CAN_SYMS.shape == (36, 4, 4)
-    R_est = R_GT @ _rot(2, 40.0)  # a multiple of the 10-degree steps
+    R_est = R_GT @ rotation(2, 40.0)  # a multiple of the 10-degree steps
     assert bm.mssd(R_est, T_GT, R_GT, T_GT, CAN, CAN_SYMS) < 1e-9
     assert bm.mspd(R_est, T_GT, R_GT, T_GT, K, CAN, CAN_SYMS) < 1e-6
     assert metrics.add(R_est, T_GT, R_GT, T_GT, CAN) > 0.03
     # Between two steps the error is at most the chord of half a step; without symmetries it is the full turn.
-    R_mid = R_GT @ _rot(2, 45.0)
+    R_mid = R_GT @ rotation(2, 45.0)
     assert bm.mssd(R_mid, T_GT, R_GT, T_GT, CAN, CAN_SYMS) <= 2 * 0.05 * math.sin(math.radians(2.5)) + 1e-9
     no_syms = bm.symmetry_transforms("003_cracker_box")
     assert bm.mssd(R_mid, T_GT, R_GT, T_GT, CAN, no_syms) > 0.035
     # A turn about another axis is not a symmetry of the can.
-    assert bm.mssd(R_GT @ _rot(0, 40.0), T_GT, R_GT, T_GT, CAN, CAN_SYMS) > 0.03
+    assert bm.mssd(R_GT @ rotation(0, 40.0), T_GT, R_GT, T_GT, CAN, CAN_SYMS) > 0.03
 
 
 def test_known_translation_gives_known_mssd_and_mspd():

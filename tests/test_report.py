@@ -27,6 +27,7 @@ from batchpose.errors import DataError, MeshError
 from batchpose.report import figures, overlays, runs, scoring
 from batchpose.report import html as report_html
 from batchpose.stages import report as report_stage
+from tests.conftest import rotation
 
 W, H = 160, 120
 K = np.array([[200.0, 0.0, 80.0], [0.0, 200.0, 60.0], [0.0, 0.0, 1.0]])
@@ -42,15 +43,6 @@ except ImportError:
     HAVE_DATASETS = False
 
 
-def _rot(axis: int, deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    c, s = math.cos(a), math.sin(a)
-    i, j = [k for k in range(3) if k != axis]
-    R = np.eye(3)
-    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
-    return R
-
-
 def _T(R: np.ndarray, t) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R
@@ -59,7 +51,7 @@ def _T(R: np.ndarray, t) -> np.ndarray:
 
 
 def _gt_pose(obj: str, k: int) -> np.ndarray:
-    R = _rot(0, 20 + 10 * k) @ _rot(1, 15 * k)
+    R = rotation(0, 20 + 10 * k) @ rotation(1, 15 * k)
     return _T(R, [-0.05, 0.0, 0.6]) if obj == "obj_a" else _T(R, [0.06, 0.01, 0.6])
 
 
@@ -187,7 +179,7 @@ def make_run(
                     "obj_b",
                     "ok",
                     obj_id=2,
-                    cam_from_model=away @ _gt_pose("obj_b", k) @ _T(_rot(0, turn_b_deg), [0.0, 0.0, 0.0]),
+                    cam_from_model=away @ _gt_pose("obj_b", k) @ _T(rotation(0, turn_b_deg), [0.0, 0.0, 0.0]),
                     confidence=0.8,
                     n_matches=60,
                     n_inliers=30,

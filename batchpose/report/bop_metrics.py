@@ -22,6 +22,7 @@ of BOP's millimetre models; ``tests/test_bop_metrics.py`` checks each one agains
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from batchpose.core.geometry import check_rotation
@@ -52,13 +53,6 @@ SYMMETRIES: dict[str, dict[str, list]] = {
 }
 
 
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    """(3, 3) rotation by ``angle`` radians about the unit ``axis`` (Rodrigues)."""
-    x, y, z = axis
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
-
-
 def symmetry_transforms(obj_name: str, steps: int = CONTINUOUS_STEPS, table=None) -> np.ndarray:
     """The model-frame transforms that map an object onto itself, identity first.
 
@@ -84,7 +78,7 @@ def symmetry_transforms(obj_name: str, steps: int = CONTINUOUS_STEPS, table=None
         o = np.asarray(offset, dtype=np.float64)
         for i in range(1, steps):
             T = np.eye(4)
-            T[:3, :3] = _axis_angle(a, 2.0 * np.pi * i / steps)
+            T[:3, :3] = cv2.Rodrigues(a * (2.0 * np.pi * i / steps))[0]
             T[:3, 3] = o - T[:3, :3] @ o  # a rotation about the axis through the offset point
             continuous.append(T)
     return np.stack([c @ d for d in discrete for c in continuous])
