@@ -183,11 +183,21 @@ def nearest_with_rival(desc_q: np.ndarray, lib_index, lib: TemplateLibrary, conf
         rival: (M,) the rival distance.
     """
     idx, dist = knn(lib_index, desc_q, min(k, len(lib.desc)), conf)
-    p = lib.pts3d[idx]
-    far = np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m
-    far[:, 0] = False
-    rival = np.where(far.any(axis=1), dist[np.arange(len(dist)), far.argmax(axis=1)], np.inf)
-    return idx, dist, rival
+    return idx, dist, rival_distance(dist, far_points(lib.pts3d[idx], conf))
+
+
+def far_points(pts: np.ndarray, conf: MatchConfig) -> np.ndarray:
+    """(M, k) bool: which of each keypoint's k nearest template descriptors, (M, k, 3) 3D points ``pts``, lie
+    farther than ``conf.distinct_3d_m`` from the nearest one's."""
+    return np.linalg.norm(pts - pts[:, :1], axis=2) > conf.distinct_3d_m
+
+
+def rival_distance(dist: np.ndarray, rival: np.ndarray) -> np.ndarray:
+    """(M,) the distance to the nearest of each keypoint's k neighbours (``dist`` (M, k), nearest first) that
+    ``rival`` (M, k) bool marks (the first is never one); inf where none is."""
+    rival = rival.copy()
+    rival[:, 0] = False
+    return np.where(rival.any(axis=1), dist[np.arange(len(dist)), rival.argmax(axis=1)], np.inf)
 
 
 def vote_views(

@@ -9,6 +9,7 @@ target; the SIFT detectors. Nothing here depends on a frame or a sequence of fra
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -51,7 +52,6 @@ class Objects:
         self.sift = make_sift(conf.features)
         self._retry_sift: dict[float, object] = {}
         self._lib_index: dict[str, object] = {}
-        self._joint: list[JointIndex | None] = []
         self._voxels: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._flips: dict[str, list[np.ndarray]] = {}
         self._extent: dict[str, tuple[np.ndarray, float]] = {}
@@ -105,12 +105,11 @@ class Objects:
             self._lib_index[name] = flann_index(lib.desc, self.conf.match, keep_in=lib.folder)
         return self._lib_index[name]
 
+    @functools.cached_property
     def joint_index(self) -> JointIndex | None:
         """The index over every object's template descriptors that the presence check asks
         (:mod:`batchpose.method.presence`; built on first use)."""
-        if not self._joint:
-            self._joint.append(joint_index(self.libraries, self.conf.match))
-        return self._joint[0]
+        return joint_index(self.libraries, self.conf.match)
 
     def weights(self, name: str, X: np.ndarray) -> np.ndarray:
         """(N,) geometry-aware weights of the object's model points ``X`` (N, 3) (``weights.mode``)."""

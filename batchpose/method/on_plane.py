@@ -12,7 +12,7 @@ from batchpose.core.frames import Camera, Frame
 from batchpose.core.poses import PoseRecord
 from batchpose.method.objects import Objects
 from batchpose.method.plane import Placed, Plane, search_plane, support_plane
-from batchpose.method.records import NOT_FOUND, pose_of
+from batchpose.method.records import NOT_FOUND, SEARCHED, pose_of
 from batchpose.method.sequence import SearchPose, Sequence, Stamp, previous_pose, search_due
 
 #: What the plane search replaced, by the record's status before it.
@@ -34,8 +34,7 @@ def use_plane(objects: Objects, frame: Frame, rgb: np.ndarray, records: list[Pos
         r
         for r in records
         if (
-            r.status in NOT_FOUND
-            or (r.status == "absent" and pc.search_absent)
+            r.status in (SEARCHED if pc.search_absent else NOT_FOUND)
             or (r.ok and not r.tracked and r.confidence < pc.min_confidence)
         )
         and r.obj_name in objects.models

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from batchpose.config import MatchConfig
-from batchpose.method.correspondences import flann_index, knn, locate
+from batchpose.method.correspondences import far_points, flann_index, knn, locate, rival_distance
 from batchpose.method.templates import TemplateLibrary
 
 #: Nearest template descriptors asked per keypoint (the rival is the nearest of them of another object or
@@ -96,11 +96,8 @@ def joint_nearest(joint: JointIndex, desc_q: np.ndarray, conf: MatchConfig) -> J
     """Each of ``desc_q``'s (M, 128) nearest template descriptors over all objects, and its rival: the nearest
     of another object, or of a 3D point farther than ``conf.distinct_3d_m`` from the best one's."""
     idx, dist = knn(joint.index, desc_q, min(K_NEAREST, len(joint.desc)), conf)
-    own, p = joint.owner[idx], joint.pts[idx]
-    rival_of = (own != own[:, :1]) | (np.linalg.norm(p - p[:, :1], axis=2) > conf.distinct_3d_m)
-    rival_of[:, 0] = False
-    rival = np.where(rival_of.any(axis=1), dist[np.arange(len(dist)), rival_of.argmax(axis=1)], np.inf)
-    return JointNearest(idx, dist, rival)
+    own = joint.owner[idx]
+    return JointNearest(idx, dist, rival_distance(dist, (own != own[:, :1]) | far_points(joint.pts[idx], conf)))
 
 
 def votes(

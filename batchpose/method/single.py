@@ -92,7 +92,7 @@ def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseReco
 
 def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> int:
     """The most frame keypoints that count for the object and agree on one location of it (0: none)."""
-    joint = objects.joint_index()
+    joint = objects.joint_index
     if joint is None or keys.shapes is None or len(keys.desc) == 0:
         return 0
     if shot.joint is None:

@@ -230,8 +230,7 @@ def task_frames(conf: EstimatorConfig, inputs: EstimateInputs) -> int:
     """Frames per worker task: ``track.chunk_frames`` while tracking (``inputs.chunk_size`` otherwise), cut
     so that the run makes at least ``track.min_chunks`` tasks."""
     size = max(inputs.chunk_size, conf.track.chunk_frames) if conf.track.enabled else inputs.chunk_size
-    n = _n_frames(inputs)
-    return max(1, min(size, math.ceil(n / conf.track.min_chunks))) if n else size
+    return max(1, min(size, math.ceil(_n_frames(inputs) / conf.track.min_chunks)))
 
 
 def _n_frames(inputs: EstimateInputs) -> int:
