@@ -259,10 +259,12 @@ def test_warm_up_builds_every_library_index_before_the_first_frame(cracker_model
     assert renders == [cracker_model.content_hash]
 
 
-def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_library, monkeypatch):
+@pytest.mark.parametrize("joint_vote", [False, True])
+def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_library, monkeypatch, joint_vote):
     """The view vote and the locator ask the library for the same nearest descriptors: given the one
     query's result they vote and locate exactly as when each queries itself (also under an ROI mask), and
-    the estimator queries each keypoint set of an image once."""
+    the estimator queries each keypoint set of an image once. With ``match.joint_vote`` the whole frame's
+    keypoints are not queried at all: the presence check's joint query answers for them."""
     import batchpose.method.passes as passes_mod  # noqa: PLC0415
     import batchpose.method.shot as shot_mod  # noqa: PLC0415
     from batchpose.method.correspondences import flann_index, locate, nearest_with_rival, vote_views  # noqa: PLC0415
@@ -299,11 +301,66 @@ def test_view_votes_and_locator_share_one_library_query(cracker_model, cracker_l
     monkeypatch.setattr(shot_mod, "nearest_with_rival", spy)
     monkeypatch.setattr(passes_mod, "locate", spy_locate)
     # Never strong, always weak: the fine pass and the locator run.
-    weak = dataclasses.replace(conf, strong_inliers=0, fine=dataclasses.replace(conf.fine, locate_below=1.0))
+    weak = dataclasses.replace(
+        conf,
+        strong_inliers=0,
+        fine=dataclasses.replace(conf.fine, locate_below=1.0),
+        match=dataclasses.replace(conf.match, joint_vote=joint_vote),
+    )
     est = PoseEstimator(
         weak, {cracker_model.name: lib}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
     )
     rec = est.estimate_image(img, Camera(K_SYN, 640, 480), [cracker_model.name])[0]
     assert rec.ok and rot_deg(rec.cam_from_model, T) < 2.0
-    assert located and set(located) <= set(queried), (located, queried)  # the locator reused the vote's query
     assert len(queried) == len(set(queried)), queried
+    assert located and len(set(located)) == 1, located  # the whole frame's keypoints
+    # The locator reused the vote's query, or with the joint vote neither asked one (only the fine passes do).
+    assert (located[0] in queried) != joint_vote, (located, queried)
+
+
+def test_starts_that_project_alike_are_refined_once(cracker_model, cracker_library):
+    """``refine.same_start_px``: of four starting poses, two the same, one 0.5 mm beside them (under a pixel
+    in the image) and one 3 cm away, the two repeats are not refined again, and the refined pose is the one
+    refining all four gives."""
+    rng = np.random.default_rng(21)
+    T = random_pose(rng, cracker_model.center_m)
+    img = compose(rng, cracker_model, T)
+    xy_q, desc_q = detect(to_gray(img), EstimatorConfig().features)
+    none = Correspondences(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int32), (), 0)
+    starts = [T, T.copy(), T.copy(), T.copy()]
+    starts[2][0, 3] += 0.0005
+    starts[3][0, 3] += 0.03
+    passes = [(PnpResult("ok", cam_from_model=S, inliers=np.ones(6, bool)), none, xy_q, desc_q) for S in starts]
+    out = {}
+    for same_px in (0.0, 2.0):
+        conf = dataclasses.replace(
+            EstimatorConfig(), refine=RefineConfig(flips=False, iterations=1, same_start_px=same_px)
+        )
+        est = PoseEstimator(
+            conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
+        )
+        tried: list = []
+        res = refine(est.objects, cracker_model.name, passes, Camera(K_SYN, 640, 480), xy_q, desc_q, tried=tried)
+        assert res is not None
+        out[same_px] = (len(tried), res.result.cam_from_model)
+    assert out[0.0][0] == 4 and out[2.0][0] == 2
+    assert rot_deg(out[0.0][1], out[2.0][1]) < 0.05
+    assert np.linalg.norm(out[0.0][1][:3, 3] - out[2.0][1][:3, 3]) < 2e-4
+    assert rot_deg(out[2.0][1], T) < 2.0
+
+
+def test_no_fine_pass_in_a_box_as_large_as_the_image(cracker_model, cracker_library):
+    """``fine.max_box_fraction``: a box covering the frame is not searched again (it would be the whole-frame
+    pass, upsampled); a box around the object is."""
+    from batchpose.method.passes import fine_pass  # noqa: PLC0415
+    from batchpose.method.shot import Shot  # noqa: PLC0415
+
+    rng = np.random.default_rng(5)
+    T = random_pose(rng, cracker_model.center_m)
+    gray = to_gray(compose(rng, cracker_model, T))
+    est = PoseEstimator(EstimatorConfig(), {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model})
+    shot = Shot(gray, Camera(K_SYN, 640, 480), "synthetic", {}, None)
+    assert fine_pass(est.objects, shot, cracker_model.name, (0, 0, 640, 480)) is None
+    assert fine_pass(est.objects, shot, cracker_model.name, (10, 10, 600, 400)) is None  # 77 % of the image
+    around = fine_pass(est.objects, shot, cracker_model.name, (160, 80, 480, 400))  # 33 %
+    assert around is not None and around.result is not None and len(around.pairs) > 20

@@ -134,6 +134,11 @@ class MatchConfig:
     find it: ``plane.search_absent``). 0: off (every object gets the full estimate). Only where the run
     does not know which objects a frame shows (``targets: all``): under ``targets: annotations`` the ground
     truth lists them."""
+    joint_vote: bool = True
+    """With the presence check on: the whole frame's keypoints vote for an object's views (and the locator's
+    Hough votes) from the joint index's answer, which the presence check asked already, instead of asking
+    the object's own library again. A keypoint then counts only when its nearest descriptor is this object's
+    and it passes the ratio test against the nearest of another object too."""
 
 
 @dataclass(frozen=True)
@@ -204,6 +209,10 @@ class RefineConfig:
     hypotheses: int = knob(4, ge=1)
     """Also refine poses solved from each of the best templates alone, up to this many hypotheses in all,
     and keep the one with the most guided inliers."""
+    same_start_px: float = knob(2.0, ge=0)
+    """A starting pose that projects the object's bounding box less than this many pixels from an earlier
+    start's is not refined again: the guided matching (``radius_px``) finds the same pairs from both, so it would
+    reach the same pose. 0 refines every start."""
     flips: bool = True
     """Also try the best hypothesis turned 180 degrees about each of the mesh's principal axes (the poses a
     texture-symmetric object is most often confused with); keep whichever has the most guided inliers."""
@@ -239,6 +248,9 @@ class FineConfig:
     """Grow the box by this fraction of its size on every side (the coarse pose may be off)."""
     margin_px: int = knob(16, ge=0)
     """... plus this many pixels."""
+    max_box_fraction: float = knob(0.5, gt=0, le=1)
+    """No fine pass in a box covering more than this fraction of the image (e.g. a wrong whole-frame pose's,
+    clipped to the frame): it would be the whole-frame pass again, upsampled, at several times its cost."""
     prefilter_views: int = knob(32, ge=1)
     """Views tested inside the box, chosen by the crop's keypoints' votes as in ``match.prefilter_views``
     (0: every view, which costs about twice the time for no measured gain on ycbv_dev)."""

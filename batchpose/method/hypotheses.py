@@ -74,7 +74,7 @@ def refine(
     ok = [p[0] for p in passes if p[0] is not None and p[0].status == "ok"]
     # One round per hypothesis to rank them, the remaining rounds for the best one only.
     best = None
-    for T in _starts(objects, passes, ok, camera, strong):
+    for T in _starts(objects, name, passes, ok, camera, strong):
         r = once(T, 1)
         if r is not None and (best is None or r.score > best.score):
             best = r
@@ -94,22 +94,53 @@ def refine(
     return best
 
 
-def _starts(objects: Objects, passes: list[Pass], ok: list, camera: Camera, strong: bool) -> list[np.ndarray]:
+def _starts(objects: Objects, name: str, passes: list[Pass], ok: list, camera: Camera, strong: bool) -> list[np.ndarray]:
     """The refinement's starting poses: the ok passes' poses (the best one only when ``strong``), then poses
-    solved from each top template's pairs alone, up to ``refine.hypotheses`` in all."""
+    solved from each top template's pairs alone, up to ``refine.hypotheses`` in all, less those within
+    ``refine.same_start_px`` of an earlier start."""
     conf = objects.conf
-    starts = [r.cam_from_model for r in ok][: 1 if strong else conf.refine.hypotheses]
+    box = _box_corners(objects.libraries[name].pts3d)
+    starts: list[np.ndarray] = []
+    seen: list[np.ndarray] = []  # each start's box corners in the image
+
+    def add(T: np.ndarray) -> None:
+        uv = _project(box, T, camera)
+        if any(np.abs(uv - other).max() < conf.refine.same_start_px for other in seen):
+            return  # the same guided pairs, so the same refined pose, as an earlier start
+        starts.append(T)
+        seen.append(uv)
+
+    n_tried = 0
+    for r in ok[: 1 if strong else conf.refine.hypotheses]:
+        add(r.cam_from_model)
+        n_tried += 1
     for _res, corr, *_ in [] if strong else passes:
         for v in corr.templates:
-            if len(starts) >= conf.refine.hypotheses:
+            if n_tried >= conf.refine.hypotheses:
                 break
             sel = corr.view_ids == v
             if sel.sum() < conf.gnc.min_inliers:
                 continue
             sub = solve_pose(corr.x[sel], corr.X[sel], camera.K, camera.dist, None, conf.gnc)
             if sub.status == "ok":
-                starts.append(sub.cam_from_model)
+                add(sub.cam_from_model)
+                n_tried += 1
     return starts
+
+
+def _box_corners(X: np.ndarray) -> np.ndarray:
+    """(8, 3) the corners of the axis-aligned box around the points ``X`` (N, 3)."""
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    return np.array([[(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+
+
+def _project(X: np.ndarray, T: np.ndarray, camera: Camera) -> np.ndarray:
+    """(N, 2) pixels of the points ``X`` (N, 3) at pose ``T`` (pinhole; the distortion moves nearby poses'
+    projections alike); inf for points behind the camera."""
+    Y = X @ T[:3, :3].T + T[:3, 3]
+    z = Y[:, 2:3]
+    uv = (Y[:, :2] / np.where(z > 1e-6, z, np.nan)) * np.diag(camera.K)[:2] + camera.K[:2, 2]
+    return np.where(np.isfinite(uv), uv, np.inf)
 
 
 def alternative(objects: Objects, lab: LazyLab | None, name: str, res, tried: list, camera: Camera, timings: dict):

@@ -225,7 +225,11 @@ def fine_keypoints(gray: np.ndarray, box: Box, conf: EstimatorConfig, sift=None)
 
 
 def fine_pass(objects: Objects, shot: Shot, name: str, box: Box, extra: Correspondences | None = None, sift=None):
-    """Match again inside ``box``, upsampled, plus the ``extra`` pairs: a :class:`Pass` or None."""
+    """Match again inside ``box``, upsampled, plus the ``extra`` pairs: a :class:`Pass` or None (also when
+    the box covers more than ``fine.max_box_fraction`` of the image)."""
+    x0, y0, x1, y1 = box
+    if (x1 - x0) * (y1 - y0) > objects.conf.fine.max_box_fraction * shot.camera.width * shot.camera.height:
+        return None
     xy_f, desc_f = fine_keypoints(shot.gray, box, objects.conf, sift or objects.sift)
     keys = Keypoints(xy_f, desc_f, None, query_index(desc_f, objects))
     corr_f = match(objects, shot, name, keys, None, objects.conf.fine.prefilter_views)

@@ -114,11 +114,18 @@ def votes(
 ) -> int:
     """The most keypoints that count for object ``name`` (nearest descriptor its, ratio test against the
     rival) and agree on one location of it (0: none)."""
-    mine = joint.owner[found.idx[:, 0]] == joint.names.index(name)
-    if not mine.any():
+    nearest = as_object(joint, found, name)
+    if not np.isfinite(nearest[1]).any():
         return 0
-    idx = np.where(mine[:, None], joint.local[found.idx], 0)
-    dist = np.where(mine[:, None], found.dist, np.inf)  # other objects' keypoints fail the ratio test
-    peak = locate(xy, shapes, desc, joint.index, lib, conf, width, height, min_votes=1, peaks=1,
-                  nearest=(idx, dist, found.rival))  # fmt: skip
+    peak = locate(xy, shapes, desc, joint.index, lib, conf, width, height, min_votes=1, peaks=1, nearest=nearest)
     return peak[0].votes if peak else 0
+
+
+def as_object(joint: JointIndex, found: JointNearest, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``found`` as object ``name``'s library query (:func:`~batchpose.method.correspondences.nearest_with_rival`)
+    of its nearest column: (M, 1) indices into the object's library, (M, 1) distances (inf where the nearest
+    descriptor is another object's, so that keypoint fails every ratio test) and the (M,) rival distances."""
+    mine = joint.owner[found.idx[:, 0]] == joint.names.index(name)
+    idx = np.where(mine, joint.local[found.idx[:, 0]], 0)[:, None]
+    dist = np.where(mine, found.dist[:, 0], np.inf)[:, None]
+    return idx, dist, found.rival

@@ -16,7 +16,7 @@ from batchpose.core.frames import Camera
 from batchpose.errors import ImageError
 from batchpose.method.correspondences import flann_index, nearest_with_rival
 from batchpose.method.objects import Objects
-from batchpose.method.presence import JointNearest
+from batchpose.method.presence import JointNearest, as_object
 from batchpose.method.records import Replaced
 
 
@@ -75,7 +75,7 @@ class Shot:
             query, asked once by the view vote and the locator.
         replaced: the retries' replacements (:data:`batchpose.method.records.Replaced`).
         joint: the whole frame's keypoints' query of the joint index (:mod:`batchpose.method.presence`),
-            asked once for every object's presence check.
+            asked once for every object's presence check; joint_desc: those keypoints' descriptors.
     """
 
     gray: np.ndarray
@@ -86,14 +86,20 @@ class Shot:
     nearest: dict[str, list[tuple[np.ndarray, tuple]]] = field(default_factory=dict)
     replaced: Replaced = field(default_factory=dict)
     joint: JointNearest | None = None
+    joint_desc: np.ndarray | None = None
 
 
 def nearest_templates(objects: Objects, shot: Shot, name: str, desc_q: np.ndarray) -> tuple | None:
     """:func:`nearest_with_rival` of ``desc_q`` into the object's library, computed once per keypoint set
     of the image (the view vote and the locator ask for the same; each query is independent, so the
-    result is the same). None without keypoints or library."""
+    result is the same); with ``match.joint_vote``, the presence check's joint query of those keypoints
+    instead, as the object's (:func:`~batchpose.method.presence.as_object`). None without keypoints or
+    library."""
     if len(desc_q) == 0 or objects.library_index(name) is None:
         return None
+    joint = objects.joint_index if objects.conf.match.joint_vote and desc_q is shot.joint_desc else None
+    if joint is not None and shot.joint is not None and name in joint.names:
+        return as_object(joint, shot.joint, name)  # ``match.joint_vote``
     seen = shot.nearest.setdefault(name, [])
     for desc, found in seen:
         if desc is desc_q:

@@ -97,6 +97,7 @@ def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> 
         return 0
     if shot.joint is None:
         shot.joint = presence.joint_nearest(joint, keys.desc, objects.conf.match)
+        shot.joint_desc = keys.desc
     cam = shot.camera
     return presence.votes(joint, shot.joint, name, objects.libraries[name], keys.xy, keys.shapes, keys.desc,
                           objects.conf.match, cam.width, cam.height)  # fmt: skip
