@@ -137,7 +137,7 @@ def test_stage_rewrites_poses_and_skips_what_it_has_done(frames, tmp_path, cache
         out = carry_stage.main(conf, inputs, tmp_path)
         df = pd.read_parquet(out)
         assert df["carried"].tolist() == [True, False, False, False]
-        assert "carried 1 poses into 1 gaps (0 forwards, 1 backwards)" in caplog.text
+        assert "carried 1 of the 1 pairs next to a confident pose (0 forwards, 1 backwards; 1 gaps)" in caplog.text
         caplog.clear()
         carry_stage.main(conf, inputs, tmp_path)
         assert "Skipping carry" in caplog.text

@@ -350,10 +350,13 @@ def main(conf: EstimatorConfig, inputs: CarryInputs, run_dir: Path, overwrite: b
     write_parquet_atomic(df, out)
     seconds = time.perf_counter() - t0
     counts = Counter(r.split(" ", 2)[1] for r in carried["reason"]) if len(carried) else Counter()
-    write_json_atomic(done_file, {"key": key, "gaps": len(gaps), "carried": len(carried), **counts, "seconds": seconds})
+    tried = sum(len({f.frame_id for f in (*g.forward[1:], *g.backward[1:])}) for g in gaps)
+    summary = {"gaps": len(gaps), "pairs_tried": tried, "carried": len(carried), **counts}
+    write_json_atomic(done_file, {"key": key, **summary, "seconds": seconds})
     log.info(
-        "carried %d poses into %d gaps (%d forwards, %d backwards) in %.1f s",
-        len(carried), len(gaps), counts["forwards"], counts["backwards"], seconds,
+        "carried %d of the %d pairs next to a confident pose (%d forwards, %d backwards; %d gaps) in %.1f s; "
+        "the other %d failed the checks and keep the estimate's record",
+        len(carried), tried, counts["forwards"], counts["backwards"], len(gaps), seconds, tried - len(carried),
     )  # fmt: skip
     return out
 
