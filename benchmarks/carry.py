@@ -73,22 +73,21 @@ def _sparse(run, keep_every: int, cache: Path | None) -> tuple[list[dict], str]:
     conf = load_estimator_config(saved["pipeline"])
     man = load_manifest(run_dir / "manifest.yaml")
     ids = set(run.frames["frame_id"])
-    seqs = carry.sequences(
-        (f for f in open_frames(man.frames, man.path.parent) if f.frame_id in ids), conf.track.max_gap_s
-    )
-    kept = {f.frame_id for seq in seqs for f in seq[::keep_every]}
+    frames = {f.frame_id: f for f in open_frames(man.frames, man.path.parent) if f.frame_id in ids}
+    seqs = carry.sequences(frames.values(), conf.track.max_gap_s)
+    kept = {f for seq in seqs for f in seq[::keep_every]}
     est = estimated_rows(run_dir, ids)
     hide = (est["status"] == "ok") & ~est["frame_id"].isin(kept)
     sparse = est.copy()
     sparse.loc[hide, "status"] = "too_few_matches"
     sparse.loc[hide, "reason"] = "hidden by benchmarks/carry.py"
     meshes = {n: e["mesh"] for n, e in run.objects.items()}
-    ids_ = {n: int(e["obj_id"]) for n, e in run.objects.items()}
-    setup = carry.CarrySetup(saved["pipeline"], ids_, meshes, str(cache) if cache else None)
+    obj_ids = {n: int(e["obj_id"]) for n, e in run.objects.items()}
+    setup = carry.CarrySetup(saved["pipeline"], obj_ids, meshes, str(cache) if cache else None)
     carry._objects(setup)  # meshes loaded and the renderer made before the clock starts
     t0 = time.perf_counter()
     gaps = carry.plan(conf, sparse, seqs)
-    found = pd.DataFrame(carry.carry_gaps(carry._objects(setup), gaps))
+    found = pd.DataFrame(carry.carry_gaps(carry._objects(setup), gaps, frames))
     seconds = time.perf_counter() - t0
     after = carry.overlay(sparse, found)
     name = f"{run_dir.name}, 1 in {keep_every}"

@@ -20,6 +20,7 @@ from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.mesh import load_mesh
 from batchpose.method.objects import Objects
 from batchpose.report.metrics import adds
+from batchpose.report.precision import pose_table, trust
 from batchpose.stages import carry as carry_stage
 from tests.conftest import SHARED_DATA
 
@@ -77,11 +78,11 @@ def test_poses_carried_backwards_and_forwards_come_back_to_the_truth(frames, obj
     estimated = _estimated(seq, {ids[0], ids[1], ids[3]})
     conf = objects.conf
     gaps = carry_stage.plan(conf, estimated, carry_stage.sequences(iter(seq), conf.track.max_gap_s))
-    assert [([f.frame_id for f in g.forward], [f.frame_id for f in g.backward]) for g in gaps] == [
+    assert [(g.forward, g.backward) for g in gaps] == [
         ([], [ids[2], ids[1], ids[0]]),
         ([ids[2], ids[3]], []),
     ]
-    carried = pd.DataFrame(carry_stage.carry_gaps(objects, gaps))
+    carried = pd.DataFrame(carry_stage.carry_gaps(objects, gaps, {f.frame_id: f for f in seq}))
     df = carry_stage.overlay(estimated, carried)
     assert df["carried"].tolist() == [True, True, False, True]
     assert (df["status"] == "ok").all() and df.loc[df["carried"], "tracked"].all()
@@ -92,9 +93,20 @@ def test_poses_carried_backwards_and_forwards_come_back_to_the_truth(frames, obj
     assert max(errors) < 10, errors
     assert all(by_id[i]["time_sift_s"] == 0.5 and by_id[i]["time_track_s"] > 0 for i in (ids[0], ids[1], ids[3]))
     assert 0.5 <= by_id[ids[0]]["confidence"] <= 0.9
+    # summary.csv's n_carried, n_carried_correct (ADD-S < 0.2 d)
+    gt = pd.DataFrame(
+        [
+            {"frame_id": f.frame_id, "obj_name": NAME, "R": _truth(f)[:3, :3].ravel(), "t_m": _truth(f)[:3, 3]}
+            for f in seq
+        ]
+    )
+    model = objects.models[NAME]
+    table = pose_table(df, gt, {NAME: model.mesh.vertices}, {NAME: model.diameter_m})
+    t = trust(table, table.iloc[:0].assign(ok=False), len(gt))
+    assert (t.n_carried, t.n_carried_correct, t.ok_recall) == (3, 3, 1.0)
 
 
-def test_a_carry_that_fails_its_checks_leaves_the_pair_unchanged(frames, objects):
+def test_a_carry_that_fails_its_checks_leaves_the_pair_unchanged(frames, objects, caplog):
     """Frame 2 holds another video's image (the box is not there): the flow or the check against the mesh
     fails, nothing is carried, and the pair keeps the estimate's row; a source pose under
     ``carry.min_confidence`` starts no carry at all."""
@@ -105,8 +117,10 @@ def test_a_carry_that_fails_its_checks_leaves_the_pair_unchanged(frames, objects
     conf = objects.conf
     gaps = carry_stage.plan(conf, estimated, carry_stage.sequences(iter(swapped), conf.track.max_gap_s))
     assert len(gaps) == 1
-    carried = pd.DataFrame(carry_stage.carry_gaps(objects, gaps))
+    with caplog.at_level(logging.DEBUG, logger="batchpose"):
+        carried = pd.DataFrame(carry_stage.carry_gaps(objects, gaps, {f.frame_id: f for f in swapped}))
     assert carried.empty
+    assert f"{NAME} forwards {ids[0]}: {ids[1]}: track lost" in caplog.text  # seeded, then the check failed
     df = carry_stage.overlay(estimated, carried)
     pd.testing.assert_frame_equal(df.drop(columns="carried"), estimated.drop(columns="carried"))
     assert not df["carried"].any()
@@ -137,7 +151,10 @@ def test_stage_rewrites_poses_and_skips_what_it_has_done(frames, tmp_path, cache
         out = carry_stage.main(conf, inputs, tmp_path)
         df = pd.read_parquet(out)
         assert df["carried"].tolist() == [True, False, False, False]
-        assert "carried 1 of the 1 pairs next to a confident pose (0 forwards, 1 backwards; 1 gaps)" in caplog.text
+        assert (
+            "carried 1 of the 1 pairs without a pose within carry.max_steps of a confident one (0 forwards, "
+            in caplog.text
+        )
         caplog.clear()
         carry_stage.main(conf, inputs, tmp_path)
         assert "Skipping carry" in caplog.text

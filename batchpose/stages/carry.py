@@ -9,7 +9,9 @@ forward carry did not reach, each at most ``carry.max_steps`` frames (:func:`bat
 A carried pose replaces the pair's row in ``poses.parquet``, marked ``carried`` (and ``tracked``), its
 reason naming the frame it came from and what the estimate had said.
 
-Resumable item by item: gaps go to the workers in groups of :data:`GROUP_GAPS`; each group's carried rows
+The log is read twice, and never held: once for where its sequences break, once for the frames of the gaps,
+each group's frames handed to a worker as soon as they are read. Resumable item by item: gaps go to the
+workers in groups of :data:`GROUP_GAPS` (in the order of the log); each group's carried rows
 are written (atomically) to ``carry/<key>.parquet`` as soon as it is done, ``key`` hashing the group's gaps
 (their frames, the poses they start from, the other objects' poses, the config). A rerun skips the groups
 already written; ``carry.json`` records which estimates ``poses.parquet`` was carried from, so a finished
@@ -24,7 +26,7 @@ import json
 import logging
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -96,17 +98,18 @@ class Gap:
 
     Attributes:
         obj_name: the object.
-        forward: the frame of the confident pose before the gap, then the gap's first ``max_steps`` frames
-            (empty: no confident pose before it).
-        backward: the frame of the confident pose after it, then its last ``max_steps`` frames, last first.
+        forward: frame ids: the frame of the confident pose before the gap, then the gap's first
+            ``max_steps`` frames (empty: no confident pose before it).
+        backward: the frame of the confident pose after it, then the gap's last ``max_steps`` frames, last
+            first.
         starts: the poses the carries start from (forward's, then backward's).
         was: frame_id -> "status: reason" of the pair the estimate made there.
         others: frame_id -> obj_name -> (4, 4) the other objects' ok poses in the gap's frames and its ends.
     """
 
     obj_name: str
-    forward: list[Frame] = field(default_factory=list)
-    backward: list[Frame] = field(default_factory=list)
+    forward: list[str] = field(default_factory=list)
+    backward: list[str] = field(default_factory=list)
     starts: list[Start] = field(default_factory=list)
     was: dict[str, str] = field(default_factory=dict)
     others: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
@@ -115,12 +118,16 @@ class Gap:
         """The gap's content, hashed: its frames, starts and the other poses its carries see."""
         blob = {
             "obj": self.obj_name,
-            "f": [f.frame_id for f in self.forward],
-            "b": [f.frame_id for f in self.backward],
+            "f": self.forward,
+            "b": self.backward,
             "s": [(s.frame_id, np.round(s.cam_from_model, 9).tolist(), round(s.confidence, 9)) for s in self.starts],
             "o": {k: {n: np.round(T, 9).tolist() for n, T in v.items()} for k, v in self.others.items()},
         }
         return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]
+
+    def frames(self) -> set[str]:
+        """The ids of every frame its carries read."""
+        return {*self.forward, *self.backward}
 
 
 def carry_statuses(conf: EstimatorConfig) -> tuple[str, ...]:
@@ -129,20 +136,23 @@ def carry_statuses(conf: EstimatorConfig) -> tuple[str, ...]:
     return (*NOT_FOUND, "hidden", *(("absent",) if conf.carry.into_absent else ()))
 
 
-def sequences(frames: Iterator[Frame], max_gap_s: float) -> list[list[Frame]]:
-    """The frames cut where one is not the next of the one before (:func:`is_next`)."""
-    out: list[list[Frame]] = []
+def sequences(frames: Iterable[Frame], max_gap_s: float) -> list[list[str]]:
+    """The frames' ids, cut where a frame is not the next of the one before (:func:`is_next`)."""
+    out: list[list[str]] = []
+    last = None
     for frame in frames:
-        if out and is_next(Stamp.of(out[-1][-1]), frame, max_gap_s):
-            out[-1].append(frame)
+        if last is not None and is_next(last, frame, max_gap_s):
+            out[-1].append(frame.frame_id)
         else:
-            out.append([frame])
+            out.append([frame.frame_id])
+        last = Stamp.of(frame)
     return out
 
 
-def plan(conf: EstimatorConfig, estimated: pd.DataFrame, seqs: list[list[Frame]]) -> list[Gap]:
-    """Every gap (see :class:`Gap`) of every object in ``seqs`` with a confident ok pose
-    (``carry.min_confidence``) at either end, from the estimate's rows."""
+def plan(conf: EstimatorConfig, estimated: pd.DataFrame, seqs: list[list[str]]) -> list[Gap]:
+    """Every gap (see :class:`Gap`) of every object in the sequences ``seqs`` (:func:`sequences`) with a
+    confident ok pose (``carry.min_confidence``) at either end, from the estimate's rows; in the order of
+    their last frame in the log."""
     cc, into = conf.carry, set(carry_statuses(conf))
     rows = {(r["frame_id"], r["obj_name"]): r for r in estimated.to_dict("records")}
     ok_poses: dict[str, dict[str, np.ndarray]] = {}
@@ -163,29 +173,30 @@ def plan(conf: EstimatorConfig, estimated: pd.DataFrame, seqs: list[list[Frame]]
         for seq in seqs:
             i = 0
             while i < len(seq):
-                r = rows.get((seq[i].frame_id, name))
+                r = rows.get((seq[i], name))
                 if r is None or r["status"] not in into:
                     i += 1
                     continue
                 j = i
-                while j + 1 < len(seq) and rows.get((seq[j + 1].frame_id, name), {}).get("status") in into:
+                while j + 1 < len(seq) and rows.get((seq[j + 1], name), {}).get("status") in into:
                     j += 1
                 gap = _gap(name, seq, i, j, confident, cc.max_steps)
                 if gap is not None:
-                    gap.was = {f.frame_id: _was(rows[(f.frame_id, name)]) for f in seq[i : j + 1]}
-                    ends = {f.frame_id for f in (*gap.forward, *gap.backward)}
-                    gap.others = {k: {n: T for n, T in ok_poses.get(k, {}).items() if n != name} for k in sorted(ends)}
+                    gap.was = {f: _was(rows[(f, name)]) for f in seq[i : j + 1]}
+                    ends = sorted({*gap.forward, *gap.backward})
+                    gap.others = {k: {n: T for n, T in ok_poses.get(k, {}).items() if n != name} for k in ends}
                     gaps.append(gap)
                 i = j + 1
-    return gaps
+    at = {f: k for k, f in enumerate(f for seq in seqs for f in seq)}
+    return sorted(gaps, key=lambda g: max(at[f] for f in g.frames()))
 
 
-def _gap(name: str, seq: list[Frame], i: int, j: int, confident, max_steps: int) -> Gap | None:
+def _gap(name: str, seq: list[str], i: int, j: int, confident, max_steps: int) -> Gap | None:
     """The gap ``seq[i..j]`` of ``name`` with its carries' frames and starts; None when neither end has a
     confident pose."""
     gap = Gap(name)
-    before = confident(seq[i - 1].frame_id, name) if i > 0 else None
-    after = confident(seq[j + 1].frame_id, name) if j + 1 < len(seq) else None
+    before = confident(seq[i - 1], name) if i > 0 else None
+    after = confident(seq[j + 1], name) if j + 1 < len(seq) else None
     if before is not None:
         gap.forward = seq[i - 1 : min(j, i + max_steps - 1) + 1]
         gap.starts.append(before)
@@ -227,20 +238,21 @@ def _objects(setup: CarrySetup) -> Objects:
     return _WORKER["objects"]
 
 
-def carry_gaps(objects: Objects, gaps: list[Gap]) -> list[dict]:
+def carry_gaps(objects: Objects, gaps: list[Gap], frames: Mapping[str, Frame]) -> list[dict]:
     """Close each gap from its ends (forwards, then backwards through the frames the forward carry did not
-    reach): the ``poses.parquet`` rows of the carried poses (timings: the carry's only)."""
-    cc, views = objects.conf.carry, _Views(objects)
+    reach): the ``poses.parquet`` rows of the carried poses (timings: the carry's only). ``frames``: frame
+    id -> frame, for every frame of the gaps (:meth:`Gap.frames`)."""
+    cc, views = objects.conf.carry, _Views(objects, frames)
     rows: list[dict] = []
     for gap in gaps:
         reached: set[str] = set()
         starts = iter(gap.starts)
-        for direction, frames in (("forwards", gap.forward), ("backwards", gap.backward)):
-            if not frames:
+        for direction, ids in (("forwards", gap.forward), ("backwards", gap.backward)):
+            if not ids:
                 continue
             start = next(starts)
-            frames = frames[: next((k for k, f in enumerate(frames) if k and f.frame_id in reached), len(frames))]
-            seen = views.get(frames, gap.others)
+            ids = ids[: next((k for k, f in enumerate(ids) if k and f in reached), len(ids))]
+            seen = views.get(ids, gap.others)
             if seen is None or len(seen) < 2:
                 continue
             pose = PoseRecord(start.frame_id, gap.obj_name, "ok", cam_from_model=start.cam_from_model,
@@ -262,36 +274,36 @@ class _Views:
     """Decoded frames (:func:`view_of`) of a worker task, kept while its gaps are carried (gaps of one task
     share frames)."""
 
-    def __init__(self, objects: Objects) -> None:
-        self.objects = objects
+    def __init__(self, objects: Objects, frames: Mapping[str, Frame]) -> None:
+        self.objects, self.frames = objects, frames
         self.cache: dict[str, View | None] = {}
 
-    def get(self, frames: list[Frame], others: dict[str, dict[str, np.ndarray]]) -> list[View] | None:
+    def get(self, ids: list[str], others: dict[str, dict[str, np.ndarray]]) -> list[View] | None:
         """The frames' views with ``others``' poses, up to the first frame that cannot be decoded; None
         when the first cannot."""
         out = []
-        for f in frames:
-            if f.frame_id not in self.cache:
+        for i in ids:
+            if i not in self.cache:
                 try:
-                    self.cache[f.frame_id] = view_of(f, {}, self.objects.conf.max_image_side_px)
+                    self.cache[i] = view_of(self.frames[i], {}, self.objects.conf.max_image_side_px)
                 except BatchposeError as e:
-                    log.debug("%s: not carried into (%s)", f.frame_id, e)
-                    self.cache[f.frame_id] = None
-            view = self.cache[f.frame_id]
+                    log.debug("%s: not carried into (%s)", i, e)
+                    self.cache[i] = None
+            view = self.cache[i]
             if view is None:
                 break
-            out.append(dataclasses.replace(view, others=others.get(f.frame_id, {})))
+            out.append(dataclasses.replace(view, others=others.get(i, {})))
         return out or None
 
 
-def _task(key: str, gaps: list[Gap], setup: CarrySetup) -> tuple[str, list[dict]]:
+def _task(key: str, gaps: list[Gap], frames: dict[str, Frame], setup: CarrySetup) -> tuple[str, list[dict]]:
     relax_loky_leak_check()
     limit_threads(setup.threads)
-    return key, carry_gaps(_objects(setup), gaps)
+    return key, carry_gaps(_objects(setup), gaps, frames)
 
 
 def _groups(gaps: list[Gap], conf_key: str) -> list[tuple[str, list[Gap]]]:
-    """The gaps in groups of :data:`GROUP_GAPS` (in order), each with its key."""
+    """The gaps in groups of :data:`GROUP_GAPS` (in their order), each with its key."""
     out = []
     for k in range(0, len(gaps), GROUP_GAPS):
         group = gaps[k : k + GROUP_GAPS]
@@ -330,9 +342,7 @@ def main(conf: EstimatorConfig, inputs: CarryInputs, run_dir: Path, overwrite: b
     if up_to_date("carry", done_file, overwrite, fresh=fresh, detail="every gap carried"):
         return out
     t0 = time.perf_counter()
-    frames = (f for i, f in enumerate(inputs.source) if inputs.limit is None or i < inputs.limit)
-    frames = (f for f in frames if inputs.frame_ids is None or f.frame_id in inputs.frame_ids)
-    gaps = plan(conf, estimated, sequences(frames, conf.track.max_gap_s))
+    gaps = plan(conf, estimated, sequences(_frames(inputs), conf.track.max_gap_s))
     groups = _groups(gaps, config_hash(to_dict(conf)))
     folder.mkdir(exist_ok=True)
     if overwrite:
@@ -350,15 +360,47 @@ def main(conf: EstimatorConfig, inputs: CarryInputs, run_dir: Path, overwrite: b
     write_parquet_atomic(df, out)
     seconds = time.perf_counter() - t0
     counts = Counter(r.split(" ", 2)[1] for r in carried["reason"]) if len(carried) else Counter()
-    tried = sum(len({f.frame_id for f in (*g.forward[1:], *g.backward[1:])}) for g in gaps)
+    tried = sum(len({*g.forward[1:], *g.backward[1:]}) for g in gaps)
     summary = {"gaps": len(gaps), "pairs_tried": tried, "carried": len(carried), **counts}
     write_json_atomic(done_file, {"key": key, **summary, "seconds": seconds})
     log.info(
-        "carried %d of the %d pairs next to a confident pose (%d forwards, %d backwards; %d gaps) in %.1f s; "
-        "the other %d failed the checks and keep the estimate's record",
+        "carried %d of the %d pairs without a pose within carry.max_steps of a confident one (%d forwards, "
+        "%d backwards; %d gaps) in %.1f s; the other %d failed the checks and keep the estimate's record",
         len(carried), tried, counts["forwards"], counts["backwards"], len(gaps), seconds, tried - len(carried),
     )  # fmt: skip
     return out
+
+
+def _frames(inputs: CarryInputs) -> Iterator[Frame]:
+    """The run's frames, in the order of the log."""
+    for i, frame in enumerate(inputs.source):
+        if inputs.limit is not None and i >= inputs.limit:
+            return
+        if inputs.frame_ids is None or frame.frame_id in inputs.frame_ids:
+            yield frame
+
+
+def _with_frames(inputs: CarryInputs, groups: list[tuple[str, list[Gap]]]):
+    """(key, gaps, their frames) of each group, as soon as the log has been read up to its last frame; a frame
+    is held only until the last group that needs it is handed on (groups come in the order of their last
+    frame)."""
+    needs = Counter(f for _, gaps in groups for f in set().union(*(g.frames() for g in gaps)))
+    held: dict[str, Frame] = {}
+    pending = iter(groups)
+    group = next(pending, None)
+    for frame in _frames(inputs):
+        if frame.frame_id in needs:
+            held[frame.frame_id] = frame
+        while group is not None and all(f in held for g in group[1] for f in g.frames()):
+            ids = set().union(*(g.frames() for g in group[1]))
+            yield group[0], group[1], {f: held[f] for f in ids}
+            for f in ids:
+                needs[f] -= 1
+                if not needs[f]:
+                    del held[f]
+            group = next(pending, None)
+        if group is None:
+            return
 
 
 def _run(conf: EstimatorConfig, inputs: CarryInputs, folder: Path, groups: list[tuple[str, list[Gap]]]) -> None:
@@ -372,7 +414,7 @@ def _run(conf: EstimatorConfig, inputs: CarryInputs, folder: Path, groups: list[
         str(inputs.mesh_cache) if inputs.mesh_cache else None,
         inputs.threads,
     )
-    tasks = (joblib.delayed(_task)(k, g, setup) for k, g in groups)
+    tasks = (joblib.delayed(_task)(k, g, frames, setup) for k, g, frames in _with_frames(inputs, groups))
     loky = loky_options() if inputs.backend == "loky" else {}
     n_jobs = min(inputs.jobs, len(groups)) if inputs.backend == "loky" else -1
     columns = list(PoseRecord("", "", "ok").to_row())
@@ -390,9 +432,9 @@ def _run(conf: EstimatorConfig, inputs: CarryInputs, folder: Path, groups: list[
 def overlay(estimated: pd.DataFrame, carried: pd.DataFrame) -> pd.DataFrame:
     """The estimate's rows with each carried row in place of its pair's, its timings added to the time the
     estimate spent on the pair (so a pair's time stays all it cost)."""
-    if carried.empty:
-        return estimated.assign(carried=estimated.get("carried", False)).astype({"carried": bool})
     keys = ["frame_id", "obj_name"]
+    if carried.empty:
+        return _flagged(estimated.copy())
     carried = carried.drop_duplicates(subset=keys, keep="first")
     before = estimated.set_index(keys).loc[pd.MultiIndex.from_frame(carried[keys])]
     carried = carried.copy()
@@ -400,5 +442,10 @@ def overlay(estimated: pd.DataFrame, carried: pd.DataFrame) -> pd.DataFrame:
         carried[col] = carried[col].to_numpy() + before[col].to_numpy()
     replaced = estimated.set_index(keys).index.isin(pd.MultiIndex.from_frame(carried[keys]))
     df = pd.concat([estimated[~replaced], carried[estimated.columns.intersection(carried.columns)]], ignore_index=True)
+    return _flagged(df).sort_values(["scene_id", "im_id", "frame_id", "obj_name"], kind="stable").reset_index(drop=True)
+
+
+def _flagged(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with a bool ``carried`` column (False where shards written before the column left it empty)."""
     df["carried"] = df["carried"].fillna(False).astype(bool) if "carried" in df else False
-    return df.sort_values(["scene_id", "im_id", "frame_id", "obj_name"], kind="stable").reset_index(drop=True)
+    return df
