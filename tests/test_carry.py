@@ -106,6 +106,20 @@ def test_poses_carried_backwards_and_forwards_come_back_to_the_truth(frames, obj
     assert (t.n_carried, t.n_carried_correct, t.ok_recall) == (3, 3, 1.0)
 
 
+def test_a_weak_source_is_carried_only_past_the_weak_pose_check(frames, objects):
+    """With ``carry.min_confidence`` 0.3, a 0.4-confident source is carried, and its carried pose (never more
+    confident than its source, so under ``verify_below``) must pass the weak-pose check too: the true pose
+    does (within 1 cm)."""
+    seq, _ = frames
+    conf = dataclasses.replace(objects.conf, carry=dataclasses.replace(objects.conf.carry, min_confidence=0.3))
+    weak = Objects(conf, {}, objects.obj_ids, objects.models, objects.renderer)
+    estimated = _estimated(seq[:2], {seq[1].frame_id}).assign(confidence=lambda d: d["confidence"] * 0.4 / 0.9)
+    gaps = carry_stage.plan(conf, estimated, carry_stage.sequences(iter(seq[:2]), conf.track.max_gap_s))
+    rows = carry_stage.carry_gaps(weak, gaps, {f.frame_id: f for f in seq[:2]})
+    assert len(rows) == 1 and rows[0]["confidence"] <= 0.4 < conf.verify_below
+    assert _adds_mm(weak, seq[1], rows[0]) < 10
+
+
 def test_a_carry_that_fails_its_checks_leaves_the_pair_unchanged(frames, objects, caplog):
     """Frame 2 holds another video's image (the box is not there): the flow or the check against the mesh
     fails, nothing is carried, and the pair keeps the estimate's row; a source pose under
