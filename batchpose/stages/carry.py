@@ -354,7 +354,10 @@ def main(conf: EstimatorConfig, inputs: CarryInputs, run_dir: Path, overwrite: b
     if len(pending) < len(groups):
         log.info("Resuming carry: %d of %d groups of gaps already carried", len(groups) - len(pending), len(groups))
     _run(conf, inputs, folder, pending)
-    parts = [pd.read_parquet(folder / f"{k}.parquet") for k, _ in groups]
+    missing = [k for k, _ in groups if not (folder / f"{k}.parquet").is_file()]
+    if missing:  # (only if the log gave other frames the second time it was read)
+        log.warning("carry: %d groups of gaps not carried: their frames were not read again", len(missing))
+    parts = [pd.read_parquet(folder / f"{k}.parquet") for k, _ in groups if k not in missing]
     carried = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     df = overlay(estimated, carried)
     write_parquet_atomic(df, out)
