@@ -151,7 +151,7 @@ def _add_run(sub, common: argparse.ArgumentParser) -> None:
             "batchpose run --pipeline fast --manifest my_log.yaml --out runs/my_log_fast --set gnc.kappa=3",
             "batchpose run --pipeline my_pipeline.yaml --manifest my_log.yaml --out runs/mine --jobs 4",
         ],
-        help="run the pipeline: ingest -> templates -> estimate -> MCAP -> report",
+        help="run the pipeline: ingest -> templates -> estimate -> carry -> MCAP -> report",
         description="Run a pipeline over the frames of a data manifest. Finished stages and finished "
         "(frame, object) pairs are skipped on a rerun; a killed run resumes.",
     )

@@ -1,4 +1,4 @@
-"""The main job: ingest -> template libraries -> estimate -> poses.csv / poses.mcap -> report.
+"""The main job: ingest -> template libraries -> estimate -> carry -> poses.csv / poses.mcap -> report.
 
 The run directory is claimed and locked by :mod:`batchpose.run_dir`; each stage is a module of :mod:`batchpose.stages`.
 
@@ -22,7 +22,7 @@ from batchpose.io.manifest import object_ids
 from batchpose.io.mesh import load_mesh
 from batchpose.io.sources import SelectedFrames, open_frames
 from batchpose.run_dir import Job, claim, exclusive, prepare
-from batchpose.stages import build_templates, estimate, export_csv, export_mcap, ingest
+from batchpose.stages import build_templates, carry, estimate, export_csv, export_mcap, ingest
 from batchpose.stages.build_templates import TemplateInputs
 from batchpose.stages.workers import threads_per_worker
 
@@ -186,6 +186,18 @@ def main(
                 threads=None if scheduler else threads_per_worker(jobs),
             )
             poses_path = estimate.main(conf, inputs, job.run_dir, overwrite)
+            carried = carry.CarryInputs(
+                source,
+                templates.obj_ids,
+                inputs.mesh_paths,
+                limit=limit,
+                frame_ids=inputs.frame_ids,
+                mesh_cache=job.cache_dir,
+                jobs=jobs,
+                backend=jl_backend,
+                threads=inputs.threads,
+            )
+            poses_path = carry.main(conf, carried, job.run_dir, overwrite)
         csv_path = export_csv.main(conf, poses_path, job.run_dir, overwrite)
         exported = export_mcap.ExportInputs(poses_path, templates.models, man.frames, source, ros_tf=ros_tf)
         mcap_path = export_mcap.main(conf, exported, job.run_dir, overwrite)

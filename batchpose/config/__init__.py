@@ -4,7 +4,7 @@ A pipeline YAML (``pipelines/*.yaml``) sets any subset of these fields; unknown 
 ``--set section.field=value`` overrides one field (the value is parsed as YAML).
 
 - :mod:`.rules`: :func:`knob`, a field's choices and bounds next to its default, and the one validator.
-- :mod:`.sections`: one dataclass per step of the method (mesh, render, features, ..., plane).
+- :mod:`.sections`: one dataclass per step of the method (mesh, render, features, ..., track, carry, depth, plane).
 - :mod:`.estimator`: :class:`EstimatorConfig` (the sections plus the fields that span them) and
   :func:`validate`, with the few rules that tie two fields together.
 - :mod:`.load`: YAML, ``--set`` overrides, dict to config and back, the config hash of cache keys.
@@ -23,6 +23,7 @@ from batchpose.config.load import (
 )
 from batchpose.config.rules import knob
 from batchpose.config.sections import (
+    CarryConfig,
     DepthConfig,
     FeatureConfig,
     FineConfig,
@@ -38,6 +39,7 @@ from batchpose.config.sections import (
 from batchpose.errors import ConfigError
 
 __all__ = [
+    "CarryConfig",
     "ConfigError",
     "DepthConfig",
     "EstimatorConfig",

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 from batchpose.config.rules import check_fields, knob
 from batchpose.config.sections import (
+    CarryConfig,
     DepthConfig,
     FeatureConfig,
     FineConfig,
@@ -109,6 +110,7 @@ class EstimatorConfig:
     refine: RefineConfig = field(default_factory=RefineConfig)
     fine: FineConfig = field(default_factory=FineConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
+    carry: CarryConfig = field(default_factory=CarryConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     plane: PlaneConfig = field(default_factory=PlaneConfig)
 

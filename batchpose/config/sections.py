@@ -395,6 +395,31 @@ class TrackConfig:
 
 
 @dataclass(frozen=True)
+class CarryConfig:
+    """Carrying confident poses through a recorded log, forwards and backwards (batchpose's addition; the
+    ``carry`` stage, :mod:`batchpose.method.carry`): after every frame is estimated, an object missed in a
+    frame next to one where it was found confidently is followed into it by the tracker (optical flow from
+    the neighbour's pose, then the pull onto the mesh and its check), in either direction, and on from there;
+    each carried pose is checked as a tracked one is and then as a weak full estimate is. Estimation cuts a
+    run into tasks that start without memory and tracks only forwards; this finds what neither reaches."""
+
+    enabled: bool = True
+    """Run the carry stage (false: the poses are the estimate stage's)."""
+    min_confidence: float = knob(0.5, ge=0, le=1)
+    """Carry only from an ok pose at least this confident (as ``track.min_confidence`` starts a track); a
+    carried pose keeps its source's confidence at most, so a chain goes on only while it stays this
+    confident."""
+    max_steps: int = knob(32, ge=1)
+    """Carry a pose at most this many frames from the confident pose it started from (each direction)."""
+    into_absent: bool = True
+    """Also carry into pairs whose status is ``absent`` (the presence check found no SIFT evidence of the
+    object: a weakly textured or blurred object next to a frame where it was found confidently is there all
+    the same). Each carried pose passes the tracker's checks against the rendered mesh frame by frame, so an
+    object that has left the view or is covered is not carried into it. False: carry only into the statuses
+    of an object looked for and not found (too_few_matches, pnp_failed, low_confidence) and ``hidden``."""
+
+
+@dataclass(frozen=True)
 class DepthConfig:
     """Optional use of a depth image registered to the colour image (batchpose's addition; see
     :mod:`batchpose.method.depth`). The RGB estimate is unchanged; each pose it finds is then moved along its

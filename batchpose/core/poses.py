@@ -8,6 +8,8 @@ Table columns (one row per (frame, object)):
     confidence (float in [0, 1]), n_matches (int), n_inliers (int), median_residual_px (float),
     templates (str, space-separated template view ids), inliers_px (list of float, x0 y0 x1 y1 ...),
     tracked (bool: followed from the previous frame by :mod:`batchpose.method.track`, not estimated afresh),
+    carried (bool: found by the carry stage, :mod:`batchpose.method.carry`, from a confident pose in a
+    neighbouring frame, forwards or backwards; also ``tracked``; its reason says from where),
     time_<stage>_s (float) for each stage in :data:`STAGES`, time_total_s (float).
 """
 
@@ -55,6 +57,7 @@ class PoseRecord:
     inliers_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     timings: dict[str, float] = field(default_factory=dict)
     tracked: bool = False
+    carried: bool = False
 
     @property
     def ok(self) -> bool:
@@ -85,6 +88,7 @@ class PoseRecord:
             "templates": " ".join(str(int(v)) for v in self.templates),
             "inliers_px": np.asarray(self.inliers_px, dtype=float).reshape(-1).tolist(),
             "tracked": bool(self.tracked),
+            "carried": bool(self.carried),
         }
         for stage in STAGES:
             row[f"time_{stage}_s"] = float(self.timings.get(stage, 0.0))

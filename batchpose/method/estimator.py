@@ -113,7 +113,7 @@ class PoseEstimator:
         replaced: Replaced = {}
         try:
             rgb = decode_image(frame)
-            frame, rgb, scale = _working_size(frame, rgb, self.conf.max_image_side_px)
+            frame, rgb, scale = working_size(frame, rgb, self.conf.max_image_side_px)
             t_decode = time.perf_counter() - t0
             records = self._estimate(frame, rgb, obj_names, sequence, replaced)
         except Exception as e:  # a failure is a record, never a crash of the batch
@@ -163,7 +163,7 @@ class PoseEstimator:
                 log.debug("%s failed", name, exc_info=True)
 
 
-def _working_size(frame: Frame, rgb: np.ndarray, max_side_px: int) -> tuple[Frame, np.ndarray, np.ndarray]:
+def working_size(frame: Frame, rgb: np.ndarray, max_side_px: int) -> tuple[Frame, np.ndarray, np.ndarray]:
     """The frame and its pixels at the size it is estimated at (``max_image_side_px``), with the x and y
     scale factors; the frame itself when it is small enough."""
     cam, scale = working_camera(frame.camera, max_side_px)

@@ -210,6 +210,8 @@ def verdict_text(v: Verdict) -> str:
             text += f"; BOP AR {fmt(v.ar, 3)}"
         if v.n_absent_pairs:
             text += f"; {v.n_ok_absent} ok of {v.n_absent_pairs} pairs of absent objects"
+        if v.n_carried:
+            text += f"; {v.n_carried} ok carried from a neighbouring frame, {v.n_carried_correct} right (ADD-S < 0.2 d)"
     return text
 
 

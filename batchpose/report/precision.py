@@ -9,7 +9,9 @@ pose of an object the ground truth does not list in its frame is a pose of an ab
 - ok precision: the share of ok poses that are correct;
 - ok recall: the share of ground-truth instances that got a correct ok pose;
 - absent: ok poses of absent objects, over the (frame, absent object) pairs the run estimated (it asked
-  for objects not in the ground truth, ``targets: all``).
+  for objects not in the ground truth, ``targets: all``);
+- carried: ok poses the carry stage found (``carried``, :mod:`batchpose.stages.carry`), and how many of them
+  are correct.
 
 The curve takes every pose the run produced with a finite pose and a confidence (ok, and those rejected
 for low confidence) and sweeps the confidence threshold over them.
@@ -32,7 +34,7 @@ CORRECT_FRACTION = 0.2
 #: Statuses whose rows carry a pose and a confidence the curve sweeps over.
 SCORED_STATUSES = ("ok", "low_confidence")
 #: Columns of :func:`pose_table`.
-POSE_COLUMNS = ("frame_id", "obj_name", "status", "confidence", "present", "adds_m", "correct")
+POSE_COLUMNS = ("frame_id", "obj_name", "status", "confidence", "present", "adds_m", "correct", "carried")
 
 
 def _gt_keys(gt: pd.DataFrame) -> set[tuple[str, str]]:
@@ -53,7 +55,8 @@ def pose_table(
 
     Returns:
         :data:`POSE_COLUMNS`: ``present`` (the ground truth lists the object in that frame), ``adds_m`` (ADD-S
-        to the truth, metres; +inf when absent) and ``correct`` (present and ADD-S < 0.2 d).
+        to the truth, metres; +inf when absent), ``correct`` (present and ADD-S < 0.2 d) and ``carried``
+        (the carry stage's pose; False in runs without the column).
     """
     present = _gt_keys(gt)
     rows = metrics.pick_estimates(poses[poses["status"].isin(SCORED_STATUSES)])
@@ -70,9 +73,9 @@ def pose_table(
             if true is not None:
                 adds_m = metrics.adds(est[:3, :3], est[:3, 3], true[:3, :3], true[:3, 3], points[key[1]])
         diam = float(diameters.get(key[1], np.nan))
-        out.append(
-            (*key, r["status"], float(r["confidence"]), key in present, adds_m, adds_m < CORRECT_FRACTION * diam)
-        )
+        carried = r.get("carried") in (True, np.True_)  # (NaN, None: a run before the carry stage)
+        correct = adds_m < CORRECT_FRACTION * diam
+        out.append((*key, r["status"], float(r["confidence"]), key in present, adds_m, correct, carried))
     return pd.DataFrame(out, columns=list(POSE_COLUMNS))
 
 
@@ -100,6 +103,10 @@ class Trust:
     """Ok poses of objects the ground truth says are absent."""
     n_absent_pairs: int
     """Estimated (frame, object) pairs of absent objects."""
+    n_carried: int = 0
+    """Ok poses the carry stage found."""
+    n_carried_correct: int = 0
+    """... of them correct."""
 
 
 def trust(table: pd.DataFrame, absent: pd.DataFrame, n_instances: int) -> Trust:
@@ -108,13 +115,15 @@ def trust(table: pd.DataFrame, absent: pd.DataFrame, n_instances: int) -> Trust:
     ok = table[table["status"] == "ok"]
     precision = float(ok["correct"].mean()) if len(ok) else float("nan")
     recall = float(ok["correct"].sum() / n_instances) if n_instances else float("nan")
-    return Trust(precision, recall, int(absent["ok"].sum()), len(absent))
+    carried = ok[ok["carried"]] if "carried" in ok else ok.iloc[:0]
+    n_abs = int(absent["ok"].sum())
+    return Trust(precision, recall, n_abs, len(absent), len(carried), int(carried["correct"].sum()))
 
 
 def trust_columns(summary: pd.DataFrame, table: pd.DataFrame, absent: pd.DataFrame) -> pd.DataFrame:
-    """``summary`` (:func:`batchpose.report.metrics.score`'s) with ok_precision, ok_recall, n_ok_absent and
-    n_absent_pairs: per object over its poses, ``pooled`` over all, ``mean`` the mean of the objects'
-    precisions and recalls and the sums of their counts."""
+    """``summary`` (:func:`batchpose.report.metrics.score`'s) with ok_precision, ok_recall, n_ok_absent,
+    n_absent_pairs, n_carried and n_carried_correct: per object over its poses, ``pooled`` over all, ``mean``
+    the mean of the objects' precisions and recalls and the sums of their counts."""
     rows = []
     for name, n in zip(summary["obj_name"], summary["n"], strict=True):
         if name in ("mean", "pooled"):

@@ -315,6 +315,10 @@ class Verdict:
     """Ok poses of objects the ground truth says are absent from their frame."""
     n_absent_pairs: int = 0
     """Estimated (frame, object) pairs of absent objects (``targets: all``)."""
+    n_carried: int = 0
+    """Ok poses the carry stage found ..."""
+    n_carried_correct: int = 0
+    """... of them with ADD-S below 0.2 d."""
 
 
 def verdict(pairs: pd.DataFrame, n_frames: int, summary: pd.DataFrame | None = None) -> Verdict:
@@ -347,4 +351,6 @@ def verdict(pairs: pd.DataFrame, n_frames: int, summary: pd.DataFrame | None = N
         ar=float(pooled.get("ar", np.nan)),
         n_ok_absent=int(pooled.get("n_ok_absent", 0)),
         n_absent_pairs=int(pooled.get("n_absent_pairs", 0)),
+        n_carried=int(pooled.get("n_carried", 0)),
+        n_carried_correct=int(pooled.get("n_carried_correct", 0)),
     )

@@ -1,4 +1,4 @@
-"""The job's stages, chained by :mod:`batchpose.run`: ingest -> build_templates -> estimate -> export_csv,
+"""The job's stages, chained by :mod:`batchpose.run`: ingest -> build_templates -> estimate -> carry -> export_csv,
 export_mcap -> report.
 
 Every stage is a module with ``main(conf, inputs, run_dir, overwrite=False) -> Path``: the estimator config,

@@ -218,9 +218,7 @@ def main(conf: EstimatorConfig, inputs: EstimateInputs, run_dir: Path, overwrite
         log.info("Resuming: %d (frame, object) pairs already estimated", len(done))
     t0 = time.perf_counter()
     new_pairs = _run_chunks(conf, inputs, shard_dir, itertools.chain([] if first is None else [first], pending))
-    df = merge_shards(shard_dir)
-    if inputs.frame_ids is not None:
-        df = df[df["frame_id"].isin(inputs.frame_ids)].reset_index(drop=True)
+    df = estimated_rows(run_dir, inputs.frame_ids)
     write_parquet_atomic(df, out)
     _log_counts(df, new_pairs, time.perf_counter() - t0)
     return out
@@ -243,7 +241,10 @@ def clear(run_dir: Path) -> None:
     for pattern in ("shard-*.parquet", "chunk-*.state"):
         for p in shard_dir.glob(pattern):
             p.unlink()
+    for p in (Path(run_dir) / "carry").glob("*.parquet"):  # the carry stage's, carried from these
+        p.unlink()
     (Path(run_dir) / "poses.parquet").unlink(missing_ok=True)
+    (Path(run_dir) / "carry.json").unlink(missing_ok=True)
 
 
 def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, chunks: Iterator[Chunk]) -> int:
@@ -297,6 +298,15 @@ def _log_counts(df: pd.DataFrame, new_pairs: int, seconds: float) -> None:
         new_pairs,
         seconds,
     )
+
+
+def estimated_rows(run_dir: Path, frame_ids: set[str] | None = None) -> pd.DataFrame:
+    """The estimate's rows of the frames ``frame_ids`` (None: all saved), as this stage writes them to
+    ``poses.parquet`` (the carry stage rewrites that file and reads the estimate's rows from here)."""
+    df = merge_shards(Path(run_dir) / "shards")
+    if frame_ids is not None:
+        df = df[df["frame_id"].isin(frame_ids)].reset_index(drop=True)
+    return df
 
 
 def merge_shards(shard_dir: Path) -> pd.DataFrame:
