@@ -337,7 +337,10 @@ def test_starts_that_project_alike_are_refined_once(cracker_model, cracker_libra
             EstimatorConfig(), refine=RefineConfig(flips=False, iterations=1, same_start_px=same_px)
         )
         est = PoseEstimator(
-            conf, {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}, renderer=get_renderer()
+            conf,
+            {cracker_model.name: cracker_library},
+            models={cracker_model.name: cracker_model},
+            renderer=get_renderer(),
         )
         tried: list = []
         res = refine(est.objects, cracker_model.name, passes, Camera(K_SYN, 640, 480), xy_q, desc_q, tried=tried)
@@ -358,7 +361,9 @@ def test_no_fine_pass_in_a_box_as_large_as_the_image(cracker_model, cracker_libr
     rng = np.random.default_rng(5)
     T = random_pose(rng, cracker_model.center_m)
     gray = to_gray(compose(rng, cracker_model, T))
-    est = PoseEstimator(EstimatorConfig(), {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model})
+    est = PoseEstimator(
+        EstimatorConfig(), {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}
+    )
     shot = Shot(gray, Camera(K_SYN, 640, 480), "synthetic", {}, None)
     assert fine_pass(est.objects, shot, cracker_model.name, (0, 0, 640, 480)) is None
     assert fine_pass(est.objects, shot, cracker_model.name, (10, 10, 600, 400)) is None  # 77 % of the image

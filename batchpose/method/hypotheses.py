@@ -94,7 +94,9 @@ def refine(
     return best
 
 
-def _starts(objects: Objects, name: str, passes: list[Pass], ok: list, camera: Camera, strong: bool) -> list[np.ndarray]:
+def _starts(
+    objects: Objects, name: str, passes: list[Pass], ok: list, camera: Camera, strong: bool
+) -> list[np.ndarray]:
     """The refinement's starting poses: the ok passes' poses (the best one only when ``strong``), then poses
     solved from each top template's pairs alone, up to ``refine.hypotheses`` in all, less those within
     ``refine.same_start_px`` of an earlier start."""
@@ -122,7 +124,7 @@ def _starts(objects: Objects, name: str, passes: list[Pass], ok: list, camera: C
             if sel.sum() < conf.gnc.min_inliers:
                 continue
             sub = solve_pose(corr.x[sel], corr.X[sel], camera.K, camera.dist, None, conf.gnc)
-            if sub.status == "ok":
+            if sub.status == "ok" and sub.cam_from_model is not None:
                 add(sub.cam_from_model)
                 n_tried += 1
     return starts

@@ -33,7 +33,7 @@ from batchpose.method.features import detect
 from batchpose.method.gnc_pnp import PnpResult, solve_pose
 from batchpose.method.objects import Objects
 from batchpose.method.records import confidence
-from batchpose.method.shot import Keypoints, Shot, nearest_templates, query_index
+from batchpose.method.shot import Keypoints, Shot, nearest_templates
 
 Box = tuple[int, int, int, int]
 
@@ -231,7 +231,7 @@ def fine_pass(objects: Objects, shot: Shot, name: str, box: Box, extra: Correspo
     if (x1 - x0) * (y1 - y0) > objects.conf.fine.max_box_fraction * shot.camera.width * shot.camera.height:
         return None
     xy_f, desc_f = fine_keypoints(shot.gray, box, objects.conf, sift or objects.sift)
-    keys = Keypoints(xy_f, desc_f, None, query_index(desc_f, objects))
+    keys = Keypoints(xy_f, desc_f, None, objects=objects)
     corr_f = match(objects, shot, name, keys, None, objects.conf.fine.prefilter_views)
     if extra is not None and len(extra):
         corr_f = Correspondences(

@@ -49,13 +49,24 @@ class Keypoints:
     Attributes:
         xy: (N, 2) float32 pixels; desc: (N, 128) float32 descriptors.
         shapes: (N, 2) each keypoint's size and angle (None: not kept, e.g. a fine pass's).
-        index: FLANN index over ``desc`` for ``match.direction: template_to_query`` (else None).
+        objects: what :attr:`index` is built for (None: no index).
     """
 
     xy: np.ndarray
     desc: np.ndarray
     shapes: np.ndarray | None = None
-    index: object = None
+    objects: Objects | None = field(default=None, repr=False)
+    _index: object = field(default=None, init=False, repr=False)
+    _built: bool = field(default=False, init=False, repr=False)
+
+    @property
+    def index(self):
+        """The FLANN index over ``desc`` for ``match.direction: template_to_query`` (else None), built when
+        first asked: a frame whose objects are all ``absent`` never needs it."""
+        if not self._built:
+            self._index = None if self.objects is None else query_index(self.desc, self.objects)
+            self._built = True
+        return self._index
 
 
 def query_index(desc: np.ndarray, objects: Objects):

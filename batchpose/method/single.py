@@ -23,7 +23,7 @@ from batchpose.method.hypotheses import alternative, planar_mirror, polish, refi
 from batchpose.method.objects import Objects
 from batchpose.method.passes import best, find_passes
 from batchpose.method.records import NOT_FOUND, Replaced, confidence, pose_of
-from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image, query_index
+from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image
 
 
 def estimate_image(
@@ -56,7 +56,7 @@ def estimate_image(
     gray = to_gray(rgb)
     xy_q, desc_q, shapes_q = detect_shapes(gray, conf.features, sift=objects.sift)
     t_sift = time.perf_counter() - t0
-    keys = Keypoints(xy_q, desc_q, shapes_q, query_index(desc_q, objects))
+    keys = Keypoints(xy_q, desc_q, shapes_q, objects=objects)
     checks = conf.planar_spread > 0 or conf.alternatives > 0
     gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
     shot = Shot(gray, camera, frame_id, gt_by_name, LazyLab(rgb, gray) if checks else None)
@@ -129,7 +129,7 @@ def _retry_once(objects: Objects, shot: Shot, records: list[PoseRecord], skip, s
     fc = objects.conf.features
     sift = objects.retry_sift(sigma)
     xy, desc, shapes = detect_shapes(shot.gray, fc, sift=sift)
-    keys = Keypoints(xy, desc, shapes, query_index(desc, objects))
+    keys = Keypoints(xy, desc, shapes, objects=objects)
     t_sift = (time.perf_counter() - t0) / len(todo)
     how = f"contrast {fc.retry_contrast_threshold:g}" + ("" if sigma == fc.sigma else f", sigma {sigma:g}")
     for i in todo:
