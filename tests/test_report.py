@@ -364,6 +364,19 @@ def test_ok_pose_of_an_absent_object_is_a_false_positive(tmp_path):
     assert "of 1 (frame, absent object) pairs estimated (100.0 %)" in html and "verdict-unchecked" not in html
 
 
+def test_a_run_without_any_ok_pose_is_reported(tmp_path):
+    """Every pair absent (e.g. a log of frames without the objects): the report is written, recall 0, no
+    precision, nothing carried."""
+    run = make_run(tmp_path)
+    poses = pd.read_parquet(run / "poses.parquet")
+    poses["status"] = "absent"
+    poses.to_parquet(run / "poses.parquet")
+    out = report_stage.main(None, None, run)
+    s = pd.read_csv(out / "summary.csv").set_index("obj_name")
+    assert s.loc["pooled", "ok_recall"] == 0 and np.isnan(s.loc["pooled", "ok_precision"])
+    assert s.loc["pooled", "n_carried"] == 0
+
+
 def test_overlay_draws_at_projected_pose():
     rgb = np.zeros((H, W, 3), np.uint8)
     pts = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])

@@ -114,10 +114,13 @@ def trust(table: pd.DataFrame, absent: pd.DataFrame, n_instances: int) -> Trust:
     ground-truth instances."""
     ok = table[table["status"] == "ok"]
     precision = float(ok["correct"].mean()) if len(ok) else float("nan")
-    recall = float(ok["correct"].sum() / n_instances) if n_instances else float("nan")
-    carried = ok[ok["carried"]] if "carried" in ok else ok.iloc[:0]
+    n_correct = int(ok["correct"].sum()) if len(ok) else 0  # (a group without ok poses may lack the column)
+    recall = n_correct / n_instances if n_instances else float("nan")
+    carried = ok[ok["carried"]] if "carried" in ok and len(ok) else ok.iloc[:0]
     n_abs = int(absent["ok"].sum())
-    return Trust(precision, recall, n_abs, len(absent), len(carried), int(carried["correct"].sum()))
+    return Trust(
+        precision, recall, n_abs, len(absent), len(carried), int(carried["correct"].sum()) if len(carried) else 0
+    )
 
 
 def trust_columns(summary: pd.DataFrame, table: pd.DataFrame, absent: pd.DataFrame) -> pd.DataFrame:
