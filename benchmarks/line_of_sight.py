@@ -309,10 +309,12 @@ def cause_table(pairs: pd.DataFrame) -> str:
                 _f(g["image_pct"].median(), "+.2f") if "image_pct" in g else "-",
                 _f(meas.mean(), "+.2f"),
                 _f(meas.std(ddof=1), ".2f") if len(g) > 1 else "-",
+                _f(1000 * g["along_m"].median()),
                 _f(g["pred_pct"].median(), ".2f"),
                 f"{g['n_inliers'].median():.0f}",
                 _f(g["residual_px"].median(), ".2f"),
                 f"{(np.sign(meas) == np.sign(meas.mean())).mean() * 100:.0f} %",
+                _pass_pct(g["add_m"], g["diameter_m"]) + " → " + _pass_pct(g["add_no_along_m"], g["diameter_m"]),
             ]
         )
     cols = [
@@ -325,8 +327,9 @@ def cause_table(pairs: pd.DataFrame) -> str:
         "image %",
         "along % mean",
         "along % sd",
+        "along mm",
     ]
-    return table(rows, cols + ["SIFT pred. sd %", "inliers", "resid. px", "same sign"])
+    return table(rows, cols + ["SIFT pred. sd %", "inliers", "resid. px", "same sign", "ADD<0.1d → no along"])
 
 
 def pinning_table(pairs: pd.DataFrame) -> str:
@@ -392,7 +395,8 @@ def study(run_dir: Path, max_rot_deg: float, with_depth: bool) -> pd.DataFrame:
     print("\nthe error split per object (medians; along: + is too far)\n" + split_table(pairs, "obj_name"))
     print("\nper video\n" + split_table(pairs, "video"))
     print("\nthe causes per video and object: rendered minus sensor depth inside the GT silhouette (median),")
-    print("the along-ray error over the sequence (mean, sd) and the sd SIFT's inliers predict\n" + cause_table(pairs))
+    print("the along-ray error over the sequence (mean, sd; median mm) and the sd SIFT's inliers predict")
+    print(cause_table(pairs))
     print("\nADD < 0.1 d of the right poses\n" + pinning_table(pairs))
     wrong = every[every["rot_deg"] >= max_rot_deg]
     fails = every["add_m"] >= 0.1 * every["diameter_m"]
