@@ -90,11 +90,13 @@ class EstimatorConfig:
     """Poses from different passes and refinement hypotheses are compared by their support: the pairs they
     reproject within this many pixels (0: GNC's inlier count, which a wrong pose gathering loose pairs at
     5-8 px can win)."""
-    strong_inliers: int = knob(60, ge=0)
+    strong_inliers: int = knob(40, ge=0)
     """A whole-frame pass with at least this many inliers (and a plausible pose) has found the object: no
     fine pass, no locator, and the refinement refines that pose only, one round (no per-template
-    hypotheses, no turned copies). Such a full estimate costs about half as much at equal accuracy
-    (reports/BENCHMARKS.md). 0: never."""
+    hypotheses, no turned copies). Such a full estimate costs about half as much at equal accuracy. 40
+    against 60: ycbv_dev 88.3 / 72.8 against 88.2 / 72.6 mean ADD-S / ADD AUC, held-out seeds 3-4 (8
+    frames an object) 87.4 / 86.9 and 86.4 / 85.9 against 87.4 / 86.9 and 86.5 / 86.0, at a third fewer
+    refinement renders and half the fine passes on unrelated frames (reports/BENCHMARKS.md). 0: never."""
     max_image_side_px: int = knob(0, ge=160, off="full resolution")
     """Frames whose longer side exceeds this are estimated at that size (resized, the camera scaled with
     them; templates rendered for the scaled camera); poses, inlier points and residuals are reported for
