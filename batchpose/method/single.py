@@ -62,10 +62,14 @@ def estimate_image(
     shot = Shot(gray, camera, frame_id, gt_by_name, LazyLab(rgb, gray) if checks else None)
     if replaced is not None:
         shot.replaced = replaced
+    t0 = time.perf_counter()
+    ask_joint(objects, shot, keys)
+    t_presence = time.perf_counter() - t0
     records = []
     for name in obj_names:
         rec = absent(objects, shot, name, keys) or estimate_object(objects, shot, name, keys, name in quick)
         rec.timings["sift"] = t_sift
+        rec.timings["presence"] = t_presence  # (like SIFT, the frame's lookup: every pair records it)
         records.append(rec)
     if conf.features.retry_contrast_threshold > 0:
         gone = frozenset(r.obj_name for r in records if r.status == "absent")
@@ -90,14 +94,23 @@ def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseReco
     return rec
 
 
-def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> int:
-    """The most frame keypoints that count for the object and agree on one location of it (0: none)."""
+def ask_joint(objects: Objects, shot: Shot, keys: Keypoints) -> None:
+    """With the presence check on, the frame keypoints' query of the joint index into ``shot`` (once)."""
+    if objects.conf.match.presence_votes <= 0 or shot.joint is not None:
+        return
     joint = objects.joint_index
     if joint is None or keys.shapes is None or len(keys.desc) == 0:
+        return
+    shot.joint = presence.joint_nearest(joint, keys.desc, objects.conf.match)
+    shot.joint_desc = keys.desc
+
+
+def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> int:
+    """The most frame keypoints that count for the object and agree on one location of it (0: none)."""
+    ask_joint(objects, shot, keys)
+    joint = objects.joint_index
+    if joint is None or shot.joint is None or keys.desc is not shot.joint_desc:
         return 0
-    if shot.joint is None:
-        shot.joint = presence.joint_nearest(joint, keys.desc, objects.conf.match)
-        shot.joint_desc = keys.desc
     cam = shot.camera
     return presence.votes(joint, shot.joint, name, objects.libraries[name], keys.xy, keys.shapes, keys.desc,
                           objects.conf.match, cam.width, cam.height)  # fmt: skip
