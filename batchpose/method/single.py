@@ -109,7 +109,7 @@ def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> 
     """The most frame keypoints that count for the object and agree on one location of it (0: none)."""
     ask_joint(objects, shot, keys)
     joint = objects.joint_index
-    if joint is None or shot.joint is None or keys.desc is not shot.joint_desc:
+    if joint is None or shot.joint is None or keys.shapes is None or keys.desc is not shot.joint_desc:
         return 0
     cam = shot.camera
     return presence.votes(joint, shot.joint, name, objects.libraries[name], keys.xy, keys.shapes, keys.desc,
