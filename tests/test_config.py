@@ -24,19 +24,19 @@ from batchpose.config.rules import RULE_KEYS
 from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose (last: strong_inliers 40;
-# match.joint_vote, refine.same_start_px and fine.max_box_fraction added). The template libraries' cache keys
-# hash only the sections that make a library (io.library).
-DEFAULT_HASH = "8703370b43cc3d37"
-DEFAULT_LAYOUT_HASH = "dc70ee3346780294"  # also pins the fields' order, as config.yaml writes them
+# match.presence_checks, joint_vote, refine.same_start_px and fine.max_box_fraction added). The template
+# libraries' cache keys hash only the sections that make a library (io.library).
+DEFAULT_HASH = "173a2d4e60a55df3"
+DEFAULT_LAYOUT_HASH = "0421b5140760675a"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "0530152f5c25b88d",
-    "gnc_pose.yaml": "8703370b43cc3d37",
-    "no_geom_weights.yaml": "52c843b49e3e8895",
-    "oracle_roi.yaml": "e72a6cbfb4c6ced5",
-    "paper.yaml": "2168e23f1c0a9a81",
-    "ransac_only.yaml": "025c76d3c42d264d",
-    "rgbd.yaml": "8a6a7c9537c6a98d",
-    "tp_ub.yaml": "b2c6803523cba192",
+    "fast.yaml": "bc163e049cb41c72",
+    "gnc_pose.yaml": "173a2d4e60a55df3",
+    "no_geom_weights.yaml": "5f320ba610a08038",
+    "oracle_roi.yaml": "ced66611ac1ead2d",
+    "paper.yaml": "d81df87c7a9279ca",
+    "ransac_only.yaml": "919ea20c162b5c30",
+    "rgbd.yaml": "f972eaceeff81a6d",
+    "tp_ub.yaml": "33851c34e0e7fc30",
 }
 
 
@@ -96,7 +96,7 @@ def test_overrides_reach_the_config():
 
 def test_rules_live_at_the_fields_and_the_defaults_keep_them():
     ruled = list(_ruled_fields())
-    assert len(ruled) == 135
+    assert len(ruled) == 136
     for key, tp, rules in ruled:
         assert set(rules) <= set(RULE_KEYS), key
         if "choices" in rules:

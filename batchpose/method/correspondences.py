@@ -138,9 +138,13 @@ def _save_index(index, path: Path, desc: np.ndarray) -> None:
                 pass
 
 
-def knn(index, queries: np.ndarray, k: int, conf: MatchConfig) -> tuple[np.ndarray, np.ndarray]:
-    """k nearest neighbours: indices (N, k) int and L2 distances (N, k) float64."""
-    idx, d2 = index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": conf.flann_checks})
+def knn(
+    index, queries: np.ndarray, k: int, conf: MatchConfig, checks: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """k nearest neighbours: indices (N, k) int and L2 distances (N, k) float64. ``checks``: the leaves to
+    visit (default ``conf.flann_checks``)."""
+    checks = conf.flann_checks if checks is None else checks
+    idx, d2 = index.knnSearch(np.ascontiguousarray(queries, np.float32), k, params={"checks": checks})
     return idx.astype(np.int64), np.sqrt(np.maximum(d2.astype(np.float64), 0.0))
 
 

@@ -95,7 +95,7 @@ class JointNearest:
 def joint_nearest(joint: JointIndex, desc_q: np.ndarray, conf: MatchConfig) -> JointNearest:
     """Each of ``desc_q``'s (M, 128) nearest template descriptors over all objects, and its rival: the nearest
     of another object, or of a 3D point farther than ``conf.distinct_3d_m`` from the best one's."""
-    idx, dist = knn(joint.index, desc_q, min(K_NEAREST, len(joint.desc)), conf)
+    idx, dist = knn(joint.index, desc_q, min(K_NEAREST, len(joint.desc)), conf, conf.presence_checks)
     own = joint.owner[idx]
     return JointNearest(idx, dist, rival_distance(dist, (own != own[:, :1]) | far_points(joint.pts[idx], conf)))
 
