@@ -102,13 +102,32 @@ def adds(R_est: np.ndarray, t_est: np.ndarray, R_gt: np.ndarray, t_gt: np.ndarra
         pts: (N, 3) model points, metres, model frame.
 
     Returns:
-        Mean nearest-neighbour distance (KD-tree over the estimated-pose points), metres.
+        Mean nearest-neighbour distance, metres. The true-pose points are moved into the estimated pose's
+        model frame (a rigid motion keeps distances), so one KD-tree over the model points serves every
+        pose of an object (kept for the last :data:`_N_TREES` point sets asked about).
     """
-    pts = _check_points(pts)
-    est = _transform(check_rotation(R_est, "R_est"), _check_translation(t_est, "t_est"), pts)
-    gt = _transform(check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), pts)
-    dist, _ = cKDTree(est).query(gt, k=1)
+    checked = _check_points(pts)
+    R_est, t_est = check_rotation(R_est, "R_est"), _check_translation(t_est, "t_est")
+    gt = _transform(check_rotation(R_gt, "R_gt"), _check_translation(t_gt, "t_gt"), checked)
+    dist, _ = _tree(pts, checked).query((gt - t_est) @ R_est, k=1)
     return float(np.mean(dist))
+
+
+_N_TREES = 64
+_TREES: dict[int, tuple[np.ndarray, cKDTree]] = {}
+
+
+def _tree(pts: np.ndarray, checked: np.ndarray) -> cKDTree:
+    """The KD-tree over ``checked`` (``pts`` as float64), built once per ``pts`` array (held, so its id
+    cannot pass to another array while the tree is kept)."""
+    hit = _TREES.get(id(pts))
+    if hit is not None and hit[0] is pts:
+        return hit[1]
+    if len(_TREES) >= _N_TREES:
+        _TREES.pop(next(iter(_TREES)))
+    tree = cKDTree(checked)
+    _TREES[id(pts)] = (pts, tree)
+    return tree
 
 
 def translation_error_mm(t_est: np.ndarray, t_gt: np.ndarray) -> float:
