@@ -43,7 +43,7 @@ def _new_figure(w: float, h: float):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(w, h), dpi=100)
+    fig = Figure(figsize=(w, h), dpi=100, layout="constrained")  # laid out once, as it is saved
     FigureCanvasAgg(fig)
     return fig
 
@@ -79,7 +79,6 @@ def curve_figure(curves: list[Curve], title: str) -> str:
     ax.grid(alpha=0.3)
     # Below the axes: with a dozen objects a legend inside would hide the curves.
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=ncol, fontsize=7.5, frameon=False)
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -107,7 +106,6 @@ def curves_figure(per_instance: pd.DataFrame) -> str:
     axes[0].legend(loc="lower right", fontsize=7.5, frameon=False)
     axes[0].set_ylabel("accuracy (%)", fontsize=8)
     fig.suptitle("Accuracy vs distance threshold (cm): the share of instances within it", fontsize=9.5)
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -137,7 +135,6 @@ def error_figure(per_instance: pd.DataFrame) -> str:
         f"Error distributions over {len(ok)} ok estimates ({len(per_instance) - len(ok)} failures not shown)",
         fontsize=10,
     )
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -183,7 +180,6 @@ def confidence_figure(per_instance: pd.DataFrame) -> str:
     if len(ok) >= 3 and ok["confidence"].nunique() > 1:
         title += f"; Spearman rho = {spearmanr(ok['confidence'], ok['adds_m']).statistic:.2f}"
     fig.suptitle(title, fontsize=9.5)
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -210,7 +206,6 @@ def confidence_hist_figure(poses: pd.DataFrame) -> str:
         fontsize=10,
     )
     ax.legend(frameon=False, fontsize=8)
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -362,7 +357,6 @@ def timeline_figure(poses: pd.DataFrame, per_instance: pd.DataFrame | None, axis
         frameon=False,
         fontsize=8,
     )
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -405,7 +399,6 @@ def values_figure(poses: pd.DataFrame, per_instance: pd.DataFrame | None, axis: 
     for ax in axes:  # one x range for every panel, so their times line up
         ax.set_xlim(lo - pad, hi + pad)
     fig.suptitle(f"{what}; x: {axis.label}; red ticks: failed pairs", fontsize=9.5)
-    fig.tight_layout()
     return _fig_png(fig)
 
 
@@ -442,5 +435,4 @@ def pr_figure(curve) -> str:
     ax.tick_params(labelsize=7.5)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower left", fontsize=7.5, frameon=False)
-    fig.tight_layout()
     return _fig_png(fig)
