@@ -16,6 +16,7 @@ from batchpose.config.sections import (
     MeshConfig,
     PlaneConfig,
     RefineConfig,
+    RegionConfig,
     RenderConfig,
     TrackConfig,
     WeightsConfig,
@@ -111,6 +112,7 @@ class EstimatorConfig:
     track: TrackConfig = field(default_factory=TrackConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     plane: PlaneConfig = field(default_factory=PlaneConfig)
+    region: RegionConfig = field(default_factory=RegionConfig)
 
 
 def _retry_below_contrast(conf: EstimatorConfig) -> str | None:

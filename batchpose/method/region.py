@@ -1,0 +1,203 @@
+"""One image region belongs to one object (``region.max_overlap``, :func:`claim_regions`).
+
+Each object of a frame is estimated on its own, so two objects can claim the same pixels: a box found on
+another box that carries the same brand print. After the frame's estimate and the weak-pose check, every
+two ok poses (tracked ones too) are compared:
+
+1. **overlap**: their meshes rendered at their poses share more than ``region.max_overlap`` of the smaller
+   silhouette (pairs whose projected convex hulls overlap too little for that are not rendered);
+2. **can both be right?** One of the two can stand in front of the other when (a) the other one's evidence
+   (its inlier keypoints; a tracked pose's tracked points) is not where the front one hides it: at most
+   ``region.max_hidden_evidence`` of it inside the front one's silhouette, and (b) the rendered depths
+   agree: over the shared pixels the front one's surface is not behind the other's (median, by more than
+   :data:`DEPTH_TOLERANCE` of the distance). A real occlusion passes for one order: the nearer object covers
+   the farther one where the farther one shows no evidence of itself. Two poses laid over the same features,
+   or a pose whose evidence is visible only if it stood in front of an object it is rendered behind, pass
+   for neither order: a **conflict**;
+3. **the verification decides** a conflict: each mesh, rendered at its pose, is compared with the frame over
+   the shared pixels (Lab correlation, as ``verify_below``'s check); the better match keeps ``ok``, the other
+   becomes ``conflict``, its reason naming the winner, and leaves the sequence's tracks.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from batchpose.core.frames import Camera, Frame
+from batchpose.core.poses import PoseRecord
+from batchpose.method.appearance import texture_match
+from batchpose.method.objects import Objects
+from batchpose.method.records import pose_of
+from batchpose.method.sequence import Sequence
+
+#: The front one of two poses may be rendered behind the other by this fraction of the distance (median over
+#: the shared pixels): poses on real frames are 1-3 % off in distance, so two objects that touch (a marker
+#: lying on a box) can come out in either order.
+DEPTH_TOLERANCE = 0.05
+#: A pose's evidence counts as hidden by a silhouette eroded by this many pixels: a keypoint beside an
+#: occluding edge, under a pose a few pixels off, is not evidence against it.
+EDGE_PX = 3
+#: The projected convex hulls are rendered when they share at least this part of ``region.max_overlap``: a
+#: silhouette is smaller than its hull, so the fraction of it that is shared can exceed the hulls'.
+HULL_SLACK = 0.5
+
+
+@dataclass
+class Claim:
+    """What an ok pose claims of the frame: its record, its rendered rgb (H, W, 3) and depth (H, W, metres,
+    0 off the mesh)."""
+
+    rec: PoseRecord
+    rgb: np.ndarray
+    depth: np.ndarray
+
+    @property
+    def mask(self) -> np.ndarray:
+        return self.depth > 0
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Two overlapping poses judged: the shared fraction of the smaller silhouette, each one's evidence under
+    the other's silhouette (fractions; 0 without evidence), and each one's median depth over the shared
+    pixels (metres)."""
+
+    overlap: float
+    hidden_a: float
+    hidden_b: float
+    depth_a: float
+    depth_b: float
+
+    def a_in_front(self, max_hidden: float) -> bool:
+        """Whether a can stand in front of b: b's evidence is not under a, a is not rendered behind b."""
+        return self.hidden_b <= max_hidden and self.depth_a <= self.depth_b * (1.0 + DEPTH_TOLERANCE)
+
+    def b_in_front(self, max_hidden: float) -> bool:
+        return self.hidden_a <= max_hidden and self.depth_b <= self.depth_a * (1.0 + DEPTH_TOLERANCE)
+
+    def conflict(self, max_hidden: float) -> bool:
+        """Neither can stand in front of the other: they claim the same pixels and cannot both be right."""
+        return not (self.a_in_front(max_hidden) or self.b_in_front(max_hidden))
+
+
+def claim_regions(objects: Objects, frame: Frame, rgb: np.ndarray, records: list[PoseRecord], sequence: Sequence):
+    """``region.max_overlap``: of every two ok poses of the frame that claim the same pixels and cannot both
+    be right (see the module docstring), the one whose render matches the frame worse over the shared pixels
+    becomes ``conflict`` and leaves ``sequence`` (its track and last confident pose)."""
+    rc = objects.conf.region
+    if rc.max_overlap <= 0 or objects.renderer is None:
+        return
+    placed = [r for r in records if r.ok and r.obj_name in objects.models]
+    pairs = candidate_pairs(objects, placed, frame.camera, rc.max_overlap * HULL_SLACK)
+    if not pairs:
+        return
+    t0 = time.perf_counter()
+    cam = frame.camera
+    claims: dict[int, Claim] = {}
+
+    def claim(rec: PoseRecord) -> Claim:
+        if id(rec) not in claims:
+            claims[id(rec)] = Claim(rec, *objects.render(rec.obj_name, pose_of(rec), cam))
+        return claims[id(rec)]
+
+    lab = None
+    for a, b in pairs:
+        if not (a.ok and b.ok):
+            continue  # one lost an earlier conflict
+        ca, cb = claim(a), claim(b)
+        verdict = judge(ca, cb)
+        if verdict is None or verdict.overlap <= rc.max_overlap or not verdict.conflict(rc.max_hidden_evidence):
+            continue
+        lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB) if lab is None else lab
+        shared = ca.mask & cb.mask
+        match_a, match_b = (texture_match(lab[shared], c.rgb[shared]) for c in (ca, cb))
+        (win, m_win), (lose, m_lose) = sorted(((a, match_a), (b, match_b)), key=lambda x: -x[1])
+        lose.status = "conflict"
+        lose.reason = (
+            f"claims the pixels of {win.obj_name} ({100 * verdict.overlap:.0f}% of the smaller silhouette "
+            f"shared; evidence under the other: {100 * verdict.hidden_a:.0f}% of {a.obj_name}'s, "
+            f"{100 * verdict.hidden_b:.0f}% of {b.obj_name}'s): its mesh matches the frame there {m_lose:.2f}, "
+            f"{win.obj_name}'s {m_win:.2f} (confidence {lose.confidence:.2f} against {win.confidence:.2f})"
+        )
+        _forget(sequence, lose)
+    share = (time.perf_counter() - t0) / max(len(claims), 1)
+    for c in claims.values():
+        c.rec.timings["refine"] = c.rec.timings.get("refine", 0.0) + share
+
+
+def candidate_pairs(objects: Objects, placed: list[PoseRecord], cam: Camera, min_hull_overlap: float):
+    """The pairs of ``placed`` whose projected convex hulls share more than ``min_hull_overlap`` of the smaller
+    hull, most overlapping first (a pose reaching behind the camera pairs with every other)."""
+    hulls = [_hull_mask(objects.hull(r.obj_name), pose_of(r), cam) for r in placed]
+    scored = []
+    for (i, a), (j, b) in itertools.combinations(enumerate(placed), 2):
+        ha, hb = hulls[i], hulls[j]
+        if ha is None or hb is None:
+            scored.append((1.0, a, b))
+            continue
+        small = min(int(ha.sum()), int(hb.sum()))
+        shared = int((ha & hb).sum())
+        if small > 0 and shared > min_hull_overlap * small:
+            scored.append((shared / small, a, b))
+    scored.sort(key=lambda s: -s[0])
+    return [(a, b) for _, a, b in scored]
+
+
+def judge(ca: Claim, cb: Claim) -> Verdict | None:
+    """The overlap of two rendered poses, each one's evidence under the other, their depths over the shared
+    pixels; None when either shows no pixel."""
+    ma, mb = ca.mask, cb.mask
+    na, nb = int(ma.sum()), int(mb.sum())
+    if na == 0 or nb == 0:
+        return None
+    shared = ma & mb
+    n = int(shared.sum())
+    if n == 0:
+        return Verdict(0.0, 0.0, 0.0, 0.0, 0.0)
+    return Verdict(
+        n / min(na, nb),
+        hidden_evidence(ca.rec.inliers_px, mb),
+        hidden_evidence(cb.rec.inliers_px, ma),
+        float(np.median(ca.depth[shared])),
+        float(np.median(cb.depth[shared])),
+    )
+
+
+def hidden_evidence(xy: np.ndarray, mask: np.ndarray) -> float:
+    """The fraction of the evidence pixels ``xy`` (N, 2) inside ``mask`` (H, W bool) eroded by
+    :data:`EDGE_PX`; 0 without evidence."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if len(xy) == 0:
+        return 0.0
+    k = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
+    core = cv2.erode(mask.astype(np.uint8), k).astype(bool)
+    h, w = core.shape
+    ij = np.rint(xy).astype(np.int64)
+    on = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    inside = np.zeros(len(xy), bool)
+    inside[on] = core[ij[on, 1], ij[on, 0]]
+    return float(inside.mean())
+
+
+def _hull_mask(hull: np.ndarray, T: np.ndarray, cam: Camera) -> np.ndarray | None:
+    """(H, W) bool: the convex hull ``hull`` (M, 3, model frame) projected at pose ``T``; None when it reaches
+    behind the camera."""
+    if np.any(hull @ T[2, :3] + T[2, 3] <= 1e-3):
+        return None
+    uv, _ = cv2.projectPoints(hull, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], cam.K, cam.dist)
+    m = np.zeros((cam.height, cam.width), np.uint8)
+    cv2.fillConvexPoly(m, np.rint(cv2.convexHull(uv.reshape(-1, 2).astype(np.float32))).astype(np.int32), 1)
+    return m.astype(bool)
+
+
+def _forget(sequence: Sequence, rec: PoseRecord) -> None:
+    """The sequence no longer follows a pose that lost its region: its track, and its last confident pose
+    when this frame set it."""
+    sequence.tracks.pop(rec.obj_name, None)
+    if sequence.last.get(rec.obj_name) is rec.cam_from_model:
+        sequence.last.pop(rec.obj_name)
