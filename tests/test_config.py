@@ -24,8 +24,8 @@ from batchpose.config.rules import RULE_KEYS
 from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose (last: the region section,
-# region.max_overlap on at 0.5, off in paper, ransac_only and no_geom_weights). The template libraries' cache keys hash only the
-# sections that make a library (io.library).
+# region.max_overlap on at 0.5, off in paper, ransac_only and no_geom_weights). The template libraries' cache
+# keys hash only the sections that make a library (io.library).
 DEFAULT_HASH = "a72bdb188850de44"
 DEFAULT_LAYOUT_HASH = "24b11b5c823521d7"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {

@@ -476,9 +476,10 @@ class RegionConfig:
     lies where the other one shows, or whose depth order says the opposite, cannot both be right. 0: off
     (the ``paper`` pipeline and its ablations)."""
     max_hidden_evidence: float = knob(0.25, gt=0, lt=1)
-    """The farther of two overlapping poses may have at most this fraction of its evidence (its inlier
-    keypoints, or tracked points) inside the nearer one's silhouette: those pixels show the nearer object,
-    so they cannot be the farther one's features."""
+    """The farther of two overlapping poses may have its evidence (inlier keypoints, or tracked points) inside
+    the nearer one's silhouette at most this dense (per pixel, against its density over its own silhouette):
+    those pixels show the nearer object, so they cannot be the farther one's features. About 1 when two
+    poses claim the same keypoints, about 0 for a real occlusion."""
 
 
 @dataclass(frozen=True)

@@ -7,16 +7,18 @@ two ok poses (tracked ones too) are compared:
 1. **overlap**: their meshes rendered at their poses share more than ``region.max_overlap`` of the smaller
    silhouette (pairs whose projected convex hulls overlap too little for that are not rendered);
 2. **can both be right?** One of the two can stand in front of the other when (a) the other one's evidence
-   (its inlier keypoints; a tracked pose's tracked points) is not where the front one hides it: at most
-   ``region.max_hidden_evidence`` of it inside the front one's silhouette, and (b) the rendered depths
+   (its inlier keypoints; a tracked pose's tracked points) is not where the front one hides it: per pixel,
+   at most ``region.max_hidden_evidence`` as dense inside the front one's silhouette as over its own
+   (:func:`hidden_evidence`), and (b) the rendered depths
    agree: over the shared pixels the front one's surface is not behind the other's (median, by more than
    :data:`DEPTH_TOLERANCE` of the distance). A real occlusion passes for one order: the nearer object covers
    the farther one where the farther one shows no evidence of itself. Two poses laid over the same features,
    or a pose whose evidence is visible only if it stood in front of an object it is rendered behind, pass
    for neither order: a **conflict**;
 3. **the verification decides** a conflict: each mesh, rendered at its pose, is compared with the frame over
-   the shared pixels (Lab correlation, as ``verify_below``'s check); the better match keeps ``ok``, the other
-   becomes ``conflict``, its reason naming the winner, and leaves the sequence's tracks.
+   the shared pixels (Lab correlation, as ``verify_below``'s check; not under 30 shared pixels); the better
+   match keeps ``ok``, the other becomes ``conflict``, its reason naming the winner, and leaves the
+   sequence's tracks.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from batchpose.method.appearance import texture_match
 from batchpose.method.objects import Objects
 from batchpose.method.records import pose_of
 from batchpose.method.sequence import Sequence
+from batchpose.method.verify import VERIFY_MIN_PX
 
 #: The front one of two poses may be rendered behind the other by this fraction of the distance (median over
 #: the shared pixels): poses on real frames are 1-3 % off in distance, so two objects that touch (a marker
@@ -42,6 +45,8 @@ DEPTH_TOLERANCE = 0.05
 #: A pose's evidence counts as hidden by a silhouette eroded by this many pixels: a keypoint beside an
 #: occluding edge, under a pose a few pixels off, is not evidence against it.
 EDGE_PX = 3
+#: Fewer of a pose's keypoints than this under another pose are no evidence against that one being in front.
+MIN_HIDDEN = 3
 #: The projected convex hulls are rendered when they share at least this part of ``region.max_overlap``: a
 #: silhouette is smaller than its hull, so the fraction of it that is shared can exceed the hulls'.
 HULL_SLACK = 0.5
@@ -63,8 +68,8 @@ class Claim:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Two overlapping poses judged: the shared fraction of the smaller silhouette, each one's evidence under
-    the other's silhouette (fractions; 0 without evidence), and each one's median depth over the shared
+    """Two overlapping poses judged: the shared fraction of the smaller silhouette, how much of each one's
+    evidence lies under the other (:func:`hidden_evidence`), and each one's median depth over the shared
     pixels (metres)."""
 
     overlap: float
@@ -113,8 +118,10 @@ def claim_regions(objects: Objects, frame: Frame, rgb: np.ndarray, records: list
         verdict = judge(ca, cb)
         if verdict is None or verdict.overlap <= rc.max_overlap or not verdict.conflict(rc.max_hidden_evidence):
             continue
-        lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB) if lab is None else lab
         shared = ca.mask & cb.mask
+        if shared.sum() < VERIFY_MIN_PX:
+            continue  # too few pixels to tell which pose they show
+        lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB) if lab is None else lab
         match_a, match_b = (texture_match(lab[shared], c.rgb[shared]) for c in (ca, cb))
         (win, m_win), (lose, m_lose) = sorted(((a, match_a), (b, match_b)), key=lambda x: -x[1])
         lose.status = "conflict"
@@ -161,27 +168,32 @@ def judge(ca: Claim, cb: Claim) -> Verdict | None:
         return Verdict(0.0, 0.0, 0.0, 0.0, 0.0)
     return Verdict(
         n / min(na, nb),
-        hidden_evidence(ca.rec.inliers_px, mb),
-        hidden_evidence(cb.rec.inliers_px, ma),
+        hidden_evidence(ca.rec.inliers_px, ma, mb),
+        hidden_evidence(cb.rec.inliers_px, mb, ma),
         float(np.median(ca.depth[shared])),
         float(np.median(cb.depth[shared])),
     )
 
 
-def hidden_evidence(xy: np.ndarray, mask: np.ndarray) -> float:
-    """The fraction of the evidence pixels ``xy`` (N, 2) inside ``mask`` (H, W bool) eroded by
-    :data:`EDGE_PX`; 0 without evidence."""
+def hidden_evidence(xy: np.ndarray, own: np.ndarray, other: np.ndarray) -> float:
+    """How much of a pose's evidence lies where another pose would hide it: the share of its evidence pixels
+    ``xy`` (N, 2) inside ``other`` (H, W bool, eroded by :data:`EDGE_PX`) over the share of its own silhouette
+    ``own`` (H, W bool) there. About 1 when its keypoints are as dense under the other as anywhere on it
+    (both claim the same features), about 0 for an object hidden there; 0 without evidence or with fewer
+    than :data:`MIN_HIDDEN` keypoints there (one keypoint on an edge is no claim)."""
     xy = np.asarray(xy, float).reshape(-1, 2)
-    if len(xy) == 0:
-        return 0.0
     k = np.ones((2 * EDGE_PX + 1, 2 * EDGE_PX + 1), np.uint8)
-    core = cv2.erode(mask.astype(np.uint8), k).astype(bool)
+    core = cv2.erode(other.astype(np.uint8), k).astype(bool)
+    area = float((own & core).sum()) / max(float(own.sum()), 1.0)
+    if len(xy) == 0 or area == 0:
+        return 0.0
     h, w = core.shape
     ij = np.rint(xy).astype(np.int64)
     on = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
     inside = np.zeros(len(xy), bool)
     inside[on] = core[ij[on, 1], ij[on, 0]]
-    return float(inside.mean())
+    n = int(inside.sum())
+    return 0.0 if n < MIN_HIDDEN else n / len(xy) / area
 
 
 def _hull_mask(hull: np.ndarray, T: np.ndarray, cam: Camera) -> np.ndarray | None:
