@@ -8,6 +8,9 @@ conflict with the ground truth: a pose is ``right`` when its ADD-S is under 0.1 
 ``wrong`` when farther, ``absent`` when the ground truth does not list the object in that frame. A conflict is
 resolved right when the loser is wrong or absent and the winner right; wrongly when the loser was right.
 
+The replay is not the run: a weak SIFT pose that a search replaced is not in ``poses.parquet``, so its
+conflicts are missed, and a conflict's loser is not searched for again; rerun with the check on for those.
+
 Usage:
     .venv/bin/python benchmarks/region_replay.py RUN --manifest MANIFEST [--cache DIR] \\
         [--set region.max_overlap=0.5 ...]
