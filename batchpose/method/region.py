@@ -138,18 +138,21 @@ def claim_regions(objects: Objects, frame: Frame, rgb: np.ndarray, records: list
 
 
 def candidate_pairs(objects: Objects, placed: list[PoseRecord], cam: Camera, min_hull_overlap: float):
-    """The pairs of ``placed`` whose projected convex hulls share more than ``min_hull_overlap`` of the smaller
-    hull, most overlapping first (a pose reaching behind the camera pairs with every other)."""
-    hulls = [_hull_mask(objects.hull(r.obj_name), pose_of(r), cam) for r in placed]
+    """The pairs of ``placed`` whose projected convex hulls (polygons cut to the image, no rasterising) share
+    more than ``min_hull_overlap`` of the smaller one's area, most overlapping first (a pose reaching behind
+    the camera pairs with every other)."""
+    hulls = [_hull_polygon(objects.hull(r.obj_name), pose_of(r), cam) for r in placed]
     scored = []
     for (i, a), (j, b) in itertools.combinations(enumerate(placed), 2):
         ha, hb = hulls[i], hulls[j]
         if ha is None or hb is None:
             scored.append((1.0, a, b))
             continue
-        small = min(int(ha.sum()), int(hb.sum()))
-        shared = int((ha & hb).sum())
-        if small > 0 and shared > min_hull_overlap * small:
+        if len(ha) < 3 or len(hb) < 3:
+            continue  # off the image
+        small = min(cv2.contourArea(ha), cv2.contourArea(hb))
+        shared = cv2.intersectConvexConvex(ha, hb)[0] if small > 0 else 0.0
+        if shared > min_hull_overlap * small:
             scored.append((shared / small, a, b))
     scored.sort(key=lambda s: -s[0])
     return [(a, b) for _, a, b in scored]
@@ -196,15 +199,17 @@ def hidden_evidence(xy: np.ndarray, own: np.ndarray, other: np.ndarray) -> float
     return 0.0 if n < MIN_HIDDEN else n / len(xy) / area
 
 
-def _hull_mask(hull: np.ndarray, T: np.ndarray, cam: Camera) -> np.ndarray | None:
-    """(H, W) bool: the convex hull ``hull`` (M, 3, model frame) projected at pose ``T``; None when it reaches
-    behind the camera."""
+def _hull_polygon(hull: np.ndarray, T: np.ndarray, cam: Camera) -> np.ndarray | None:
+    """The convex hull ``hull`` (M, 3, model frame) projected at pose ``T`` and cut to the image: a convex
+    polygon (K, 2) float32 (empty when off the image); None when it reaches behind the camera."""
     if np.any(hull @ T[2, :3] + T[2, 3] <= 1e-3):
         return None
     uv, _ = cv2.projectPoints(hull, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], cam.K, cam.dist)
-    m = np.zeros((cam.height, cam.width), np.uint8)
-    cv2.fillConvexPoly(m, np.rint(cv2.convexHull(uv.reshape(-1, 2).astype(np.float32))).astype(np.int32), 1)
-    return m.astype(bool)
+    poly = cv2.convexHull(uv.reshape(-1, 2).astype(np.float32)).reshape(-1, 2)
+    w, h = cam.width - 0.5, cam.height - 0.5
+    image = np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], np.float32)
+    area, cut = cv2.intersectConvexConvex(poly, image)
+    return cut.reshape(-1, 2).astype(np.float32) if area > 0 and cut is not None else np.zeros((0, 2), np.float32)
 
 
 def _forget(sequence: Sequence, rec: PoseRecord) -> None:
