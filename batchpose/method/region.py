@@ -127,8 +127,9 @@ def claim_regions(objects: Objects, frame: Frame, rgb: np.ndarray, records: list
         lose.status = "conflict"
         lose.reason = (
             f"claims the pixels of {win.obj_name} ({100 * verdict.overlap:.0f}% of the smaller silhouette "
-            f"shared; evidence under the other: {100 * verdict.hidden_a:.0f}% of {a.obj_name}'s, "
-            f"{100 * verdict.hidden_b:.0f}% of {b.obj_name}'s): its mesh matches the frame there {m_lose:.2f}, "
+            f"shared; keypoints under the other, per pixel, against over its own: {a.obj_name} "
+            f"{verdict.hidden_a:.2f}, {b.obj_name} {verdict.hidden_b:.2f}; median depth there "
+            f"{verdict.depth_a:.2f} / {verdict.depth_b:.2f} m): its mesh matches the frame there {m_lose:.2f}, "
             f"{win.obj_name}'s {m_win:.2f} (confidence {lose.confidence:.2f} against {win.confidence:.2f})"
         )
         _forget(sequence, lose)
