@@ -157,3 +157,17 @@ def test_a_real_occlusion_keeps_both_poses(cracker_model):
     claim_regions(objects, frame, decode_image(frame), records, Sequence())
     assert all(r.ok for r in records)
     assert (front > 0).sum() > 0 and ((front > 0) & (back > 0)).sum() > 0.3 * (back > 0).sum()
+
+
+def test_renders_that_match_alike_leave_it_to_the_confidence(demo):
+    """Two objects with the same mesh at the same pose: their renders match the frame exactly alike, so the
+    more confident pose is kept, whichever comes first."""
+    frame, rgb, truth, models = demo
+    objects = _objects({"a": models[BOX], "b": models[BOX]})
+    _, depth = objects.render("a", truth, frame.camera)
+    for first, second in ((0.9, 0.5), (0.5, 0.9)):
+        a = _record(frame, "a", truth, _evidence(depth), first)
+        b = _record(frame, "b", truth, _evidence(depth), second)
+        claim_regions(objects, frame, rgb, [a, b], Sequence())
+        kept, lost = (a, b) if first > second else (b, a)
+        assert kept.ok and lost.status == "conflict" and "the more confident pose kept" in lost.reason
