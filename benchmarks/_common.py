@@ -23,7 +23,8 @@ import psutil
 from batchpose.run_dir import versions
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+#: The shared data: ``../shared/data`` beside the repository, or ``$BATCHPOSE_SHARED_DATA`` (as the tests read it).
+SHARED_DATA = Path(os.environ.get("BATCHPOSE_SHARED_DATA", REPO.parent / "shared" / "data"))
 MB = 1024 * 1024
 
 

@@ -797,21 +797,22 @@ def test_report_without_ground_truth_in_browser(report_nogt, browser, tmp_path):
 def test_timeline_shows_each_pairs_status_and_the_most_severe_per_column():
     rows = pd.DataFrame(
         {
-            "status": ["ok", "ok", "ok", "low_confidence", "hidden", "pnp_failed", "ok"],
-            "tracked": [False, True, None, False, False, False, False],
+            "status": ["ok", "ok", "ok", "low_confidence", "hidden", "pnp_failed", "ok", "conflict"],
+            "tracked": [False, True, None, False, False, False, False, True],
         }
     )
-    wrong = np.array([False, False, False, False, False, False, True])
+    wrong = np.array([False, False, False, False, False, False, True, False])
     kinds = figures.timeline_kinds(rows, wrong)
     names = [figures.TIMELINE_KINDS[k][0] for k in kinds]
     assert names == [
         "ok, full estimate",
         "ok, tracked",
         "ok, full estimate",
-        "low confidence",
+        "low confidence, region conflict",
         "hidden",
         "failed",
         "ok but wrong (ADD-S > 0.1 d)",
+        "low confidence, region conflict",
     ]
     # Two objects over 0..3 s in 2 columns: a column shows its most severe pair, white (-1) where none.
     t = np.array([0.0, 1.0, 2.0, 3.0, 0.0])

@@ -17,6 +17,7 @@ from batchpose.config.sections import (
     MeshConfig,
     PlaneConfig,
     RefineConfig,
+    RegionConfig,
     RenderConfig,
     TrackConfig,
     WeightsConfig,
@@ -115,6 +116,7 @@ class EstimatorConfig:
     carry: CarryConfig = field(default_factory=CarryConfig)
     depth: DepthConfig = field(default_factory=DepthConfig)
     plane: PlaneConfig = field(default_factory=PlaneConfig)
+    region: RegionConfig = field(default_factory=RegionConfig)
 
 
 def _retry_below_contrast(conf: EstimatorConfig) -> str | None:

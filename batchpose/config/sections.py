@@ -506,6 +506,25 @@ class DepthConfig:
 
 
 @dataclass(frozen=True)
+class RegionConfig:
+    """One image region belongs to one object (batchpose's addition; :mod:`batchpose.method.region`): after
+    every object of a frame is estimated, two ok poses that claim the same pixels and cannot both be right
+    are settled by comparing each mesh, rendered at its pose, with the frame; the loser is ``conflict``."""
+
+    max_overlap: float = knob(0.5, gt=0, lt=1, off="no check")
+    """Two ok poses are compared when their rendered silhouettes share more than this fraction of the
+    smaller silhouette. A real occlusion (the nearer object hides the farther one where the farther one has
+    no evidence: inlier keypoints or tracked points) passes; two poses at the same pixels whose evidence
+    lies where the other one shows, or whose depth order says the opposite, cannot both be right. 0: off
+    (the ``paper`` pipeline and its ablations)."""
+    max_hidden_evidence: float = knob(0.25, gt=0, lt=1)
+    """The farther of two overlapping poses may have its evidence (inlier keypoints, or tracked points) inside
+    the nearer one's silhouette at most this dense (per pixel, against its density over its own silhouette):
+    those pixels show the nearer object, so they cannot be the farther one's features. About 1 when two
+    poses claim the same keypoints, about 0 for a real occlusion."""
+
+
+@dataclass(frozen=True)
 class PlaneConfig:
     """Looking for an object SIFT missed on the surface the found objects rest on (batchpose's addition; see
     :mod:`batchpose.method.plane`). Runs only for an object without a pose in a frame where at least

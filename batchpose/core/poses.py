@@ -25,6 +25,7 @@ STATUSES = (
     "too_few_matches",
     "pnp_failed",
     "low_confidence",
+    "conflict",
     "hidden",
     "bad_image",
     "bad_camera",

@@ -19,6 +19,7 @@ from batchpose.method.sequence import SearchPose, Sequence, Stamp, previous_pose
 _REPLACED = {
     "ok": "a weak SIFT pose",
     "low_confidence": "a low-confidence SIFT pose",
+    "conflict": "a SIFT pose on another object's pixels",
     "absent": "no SIFT evidence of it",
 }
 

@@ -10,8 +10,9 @@ from batchpose.core.poses import PoseRecord
 from batchpose.errors import CameraError, ImageError
 
 #: Statuses of an object the frame shows no pose of: the retries, the depth search and the plane search look
-#: for it.
-NOT_FOUND = ("too_few_matches", "pnp_failed", "low_confidence")
+#: for it. ``conflict`` (:mod:`batchpose.method.region`): its pose claimed another object's pixels and lost
+#: them; the object may still be elsewhere.
+NOT_FOUND = ("too_few_matches", "pnp_failed", "low_confidence", "conflict")
 #: Statuses an object is searched for in (the depth and the plane search): no SIFT pose, or (``absent``) no SIFT
 #: evidence of it at all; an object with little texture can be there all the same.
 SEARCHED = (*NOT_FOUND, "absent")

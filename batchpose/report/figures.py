@@ -28,7 +28,7 @@ Curve = tuple[str, np.ndarray, dict[str, Any]]
 TIMELINE_KINDS: tuple[tuple[str, str], ...] = (
     ("ok but wrong (ADD-S > 0.1 d)", "#7b2d8e"),
     ("failed", "#c44e52"),
-    ("low confidence", "#dd8452"),
+    ("low confidence, region conflict", "#dd8452"),
     ("hidden", "#b0b0b0"),
     ("ok, full estimate", "#2f7d32"),
     ("ok, tracked", "#95d195"),
@@ -287,7 +287,7 @@ def timeline_kinds(rows: pd.DataFrame, wrong: np.ndarray | None = None) -> np.nd
     tracked = rows["tracked"].eq(True).to_numpy() if "tracked" in rows.columns else np.zeros(len(rows), bool)
     ok = status == "ok"
     kind = np.full(len(rows), 1)  # failed: every status not named below
-    kind[status == "low_confidence"] = 2
+    kind[(status == "low_confidence") | (status == "conflict")] = 2
     kind[status == "hidden"] = 3
     kind[status == "absent"] = 6
     kind[ok & ~tracked] = 4

@@ -78,6 +78,7 @@ STATUS_LABELS: dict[str, str] = {
     "too_few_matches": "too few matches",
     "pnp_failed": "PnP failed",
     "low_confidence": "low confidence",
+    "conflict": "region conflict",
     "hidden": "hidden",
     "bad_image": "unreadable image",
     "bad_camera": "bad camera",
@@ -88,7 +89,7 @@ STATUS_LABELS: dict[str, str] = {
 STATUS_GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("absent", ("absent",)),
     ("not found", ("too_few_matches", "pnp_failed")),
-    ("rejected", ("low_confidence",)),
+    ("rejected", ("low_confidence", "conflict")),
     ("hidden", ("hidden",)),
     ("bad input", ("bad_image", "bad_camera")),
     ("errors", ("error",)),
