@@ -121,9 +121,11 @@ def _cmd_score(args: argparse.Namespace) -> None:
         raise BatchposeError(f"{args.run_dir}: the run has no ground truth (gt.parquet) to score against")
     points, diameters = run.model_points(sorted(run.objects))
     obj_names = {int(v["obj_id"]): k for k, v in run.objects.items()}
-    _, summary = scoring.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames)
+    _, summary = scoring.score_bop_csv(Path(args.csv), run.gt, points, diameters, obj_names, frames=run.frames, run=run)
     cols = ["obj_name", "n", "adds_auc", "add_auc", "adds_recall_01d", "add_recall_01d"]
-    print(summary[cols].to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    cols += [c for c in ("ar_vsd", "ar_mssd", "ar_mspd", "ar") if c in summary]  # BOP 2019 average recalls
+    digits = {c: "{:.3f}" if c.startswith("ar") else "{:.1f}" for c in cols[2:]}
+    print(summary[cols].to_string(index=False, formatters={c: f.format for c, f in digits.items()}))
 
 
 def _examples(*lines: str) -> str:

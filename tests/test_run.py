@@ -226,10 +226,15 @@ def test_score_command_scores_a_bop_csv(demo_run):
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
     header = [ln for ln in lines if ln.strip().startswith("obj_name")][0].split()
-    assert header == ["obj_name", "n", "adds_auc", "add_auc", "adds_recall_01d", "add_recall_01d"]
+    assert header[:6] == ["obj_name", "n", "adds_auc", "add_auc", "adds_recall_01d", "add_recall_01d"]
+    assert header[6:] == ["ar_vsd", "ar_mssd", "ar_mspd", "ar"]  # BOP 2019 (the demo frames have depth)
     pooled = [ln for ln in lines if ln.strip().startswith("pooled")][0].split()
     assert pooled[1] == "5" and float(pooled[2]) > 80  # n, ADD-S AUC
     assert 80 <= float(pooled[4]) <= 100  # ADD-S recall at 0.1 d, %
+    # Our own poses.csv scores as the run's report does.
+    own = pd.read_csv(demo_run / "report" / "summary.csv").set_index("obj_name").loc["pooled"]
+    for i, c in enumerate(header[6:], start=6):
+        assert float(pooled[i]) == pytest.approx(own[c], abs=1e-3), c
 
 
 @pytest.mark.slow

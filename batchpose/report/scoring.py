@@ -208,6 +208,7 @@ def score_bop_csv(
     diameters: Mapping[str, float],
     obj_names: Mapping[int, str],
     frames: pd.DataFrame | None = None,
+    run: RunData | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Score any BOP-format results file against our ground truth (``batchpose score``).
 
@@ -220,6 +221,8 @@ def score_bop_csv(
         obj_names: obj_id -> obj_name (YCB-Video: 1-based line of ``classes.txt``).
         frames: optional table with frame_id, scene_id, im_id (``frames.parquet``) to map BOP image ids to
             frame ids when ``gt`` has no scene_id / im_id.
+        run: the run the ground truth is from: with it, the BOP errors and average recalls of the file's
+            poses too (:func:`bop_scoring.with_bop_columns`; VSD where the run's frames have depth).
 
     Returns:
         ``(per_instance, summary)`` as :func:`batchpose.report.metrics.score` returns them.
@@ -241,7 +244,10 @@ def score_bop_csv(
     }
     est = bop_to_poses(table, obj_names, frame_ids, where=str(csv_path))
     log.info("%s: %d estimates for %d ground-truth instances", csv_path, len(est), len(gt))
-    return metrics.score(est, gt, points, diameters)
+    per_instance, summary = metrics.score(est, gt, points, diameters)
+    if run is None:
+        return per_instance, summary
+    return bop_scoring.with_bop_columns(replace(run, poses=est, notes=[]), per_instance, summary)
 
 
 # ---------------------------------------------------------------------------------------------- verdict
