@@ -16,7 +16,7 @@ The replay is not the run: a weak SIFT pose a placement had to beat is gone, so 
 differ from the run's own rows in a pair or two; compare the two replayed columns with each other.
 
 Usage (a tabletop run of benchmarks/tabletop.py, the eight inserted objects):
-    .venv/bin/python benchmarks/plane_replay.py /tmp/tt/run --manifest /tmp/tt/tabletop_annotations.yaml \\
+    .venv/bin/python benchmarks/plane_replay.py runs/tt/run --manifest runs/tt/tabletop_annotations.yaml \\
         --objects 005_tomato_soup_can 007_tuna_fish_can 008_pudding_box 009_gelatin_box 010_potted_meat_can \\
         021_bleach_cleanser 035_power_drill 040_large_marker --set plane.min_colour=0.2
 """
