@@ -24,19 +24,19 @@ from batchpose.config.rules import RULE_KEYS
 from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose (last: the region section;
-# strong_inliers 40; match.presence_checks, joint_vote, refine.same_start_px, fine.max_box_fraction). The
+# strong_inliers 40; match.presence_checks, joint_vote, refine.same_start_px, fine.max_box_fraction 1). The
 # template libraries' cache keys hash only the sections that make a library (io.library).
-DEFAULT_HASH = "a1d1d1609350f0e3"
-DEFAULT_LAYOUT_HASH = "3af594d346bff7dc"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "51b597a788b44ecf"
+DEFAULT_LAYOUT_HASH = "5fa284139a032af4"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "d1a31cbce06d1de6",
-    "gnc_pose.yaml": "a1d1d1609350f0e3",
-    "no_geom_weights.yaml": "5f6092d8b5ff1ea5",
-    "oracle_roi.yaml": "de063094243f0d6a",
-    "paper.yaml": "b8f29a2dd94f2460",
-    "ransac_only.yaml": "aac4868bf9d1b507",
-    "rgbd.yaml": "46e26a93855ab107",
-    "tp_ub.yaml": "3a29281c4132989a",
+    "fast.yaml": "26f1101c188da391",
+    "gnc_pose.yaml": "51b597a788b44ecf",
+    "no_geom_weights.yaml": "307a89c16d007562",
+    "oracle_roi.yaml": "f429f923c9f1edd3",
+    "paper.yaml": "d0ec10cccdb4c5a7",
+    "ransac_only.yaml": "6cd778f5eddbd23a",
+    "rgbd.yaml": "2641466ea2cafdc1",
+    "tp_ub.yaml": "484d157a93a94f46",
 }
 
 

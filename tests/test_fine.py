@@ -353,18 +353,20 @@ def test_starts_that_project_alike_are_refined_once(cracker_model, cracker_libra
 
 
 def test_no_fine_pass_in_a_box_as_large_as_the_image(cracker_model, cracker_library):
-    """``fine.max_box_fraction``: a box covering the frame is not searched again (it would be the whole-frame
-    pass, upsampled); a box around the object is."""
+    """``fine.max_box_fraction`` 0.5: a box covering the frame is not searched again (it would be the
+    whole-frame pass, upsampled); a box around the object is. By default (1) any box is."""
     from batchpose.method.passes import fine_pass  # noqa: PLC0415
     from batchpose.method.shot import Shot  # noqa: PLC0415
 
     rng = np.random.default_rng(5)
     T = random_pose(rng, cracker_model.center_m)
     gray = to_gray(compose(rng, cracker_model, T))
-    est = PoseEstimator(
-        EstimatorConfig(), {cracker_model.name: cracker_library}, models={cracker_model.name: cracker_model}
-    )
     shot = Shot(gray, Camera(K_SYN, 640, 480), "synthetic", {}, None)
+    models = {cracker_model.name: cracker_model}
+    unlimited = PoseEstimator(EstimatorConfig(), {cracker_model.name: cracker_library}, models=models)
+    assert fine_pass(unlimited.objects, shot, cracker_model.name, (0, 0, 640, 480)) is not None  # default 1: no limit
+    conf = dataclasses.replace(EstimatorConfig(), fine=FineConfig(max_box_fraction=0.5))
+    est = PoseEstimator(conf, {cracker_model.name: cracker_library}, models=models)
     assert fine_pass(est.objects, shot, cracker_model.name, (0, 0, 640, 480)) is None
     assert fine_pass(est.objects, shot, cracker_model.name, (10, 10, 600, 400)) is None  # 77 % of the image
     around = fine_pass(est.objects, shot, cracker_model.name, (160, 80, 480, 400))  # 33 %
