@@ -254,10 +254,8 @@ class FineConfig:
     margin_px: int = knob(16, ge=0)
     """... plus this many pixels."""
     max_box_fraction: float = knob(1.0, gt=0, le=1)
-    """No fine pass in a box covering more than this fraction of the image (e.g. a wrong whole-frame pose's,
-    clipped to the frame), which costs several times the whole-frame pass. 1: no limit. 0.5 saved ~5 % of the
-    cycling log's time (reports/BENCHMARKS.md) but lost a dim pudding box on held-out seed 3 that only such an
-    upsampled whole-frame pass found (88.4 / 87.9 -> 87.4 / 86.9)."""
+    """No fine pass in a box over this fraction of the image (1: no limit). 0.5 saved ~5 % on the cycling log but
+    lost a dim object on held-out seed 3 that only that upsampled whole-frame pass found (reports/BENCHMARKS.md)."""
     prefilter_views: int = knob(32, ge=1)
     """Views tested inside the box, chosen by the crop's keypoints' votes as in ``match.prefilter_views``
     (0: every view, which costs about twice the time for no measured gain on ycbv_dev)."""
