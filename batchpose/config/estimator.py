@@ -51,6 +51,12 @@ class EstimatorConfig:
     heldout.py 30 of 31 weak SIFT poses were wrong or of absent objects (texture match -0.2-0.23 for the
     absent ones), the right one matched 0.65. One whose mesh shows under 30 px in the frame (past
     ``render.zfar_m``, beside the image) cannot be checked and is low_confidence too. 0: no check."""
+    min_verification: float = knob(0.5, ge=0, lt=1)
+    """Every untracked pose (first pass, retry, search) is rendered and compared with the frame: its outline
+    against the frame's edges, its gradients and its colours, combined into one score, the estimated
+    probability that the pose is on the object (``verification`` in poses.parquet;
+    :mod:`batchpose.method.score`). An ok pose scoring under this is low_confidence. 0: no score (the
+    paper's pipelines)."""
     verify_min_match: float = knob(0.35, ge=-1, le=1)
     """See ``verify_below`` (the depth and plane searches keep what they find by the same threshold)."""
     planar_spread: float = knob(0.05, ge=0, lt=1)

@@ -10,6 +10,7 @@ Table columns (one row per (frame, object)):
     tracked (bool: followed from the previous frame by :mod:`batchpose.method.track`, not estimated afresh),
     carried (bool: found by the carry stage, :mod:`batchpose.method.carry`, from a confident pose in a
     neighbouring frame, forwards or backwards; also ``tracked``; its reason says from where),
+    verification (float: :mod:`batchpose.method.score`'s score of an untracked pose, NaN where not scored),
     time_<stage>_s (float) for each stage in :data:`STAGES`, time_total_s (float).
 """
 
@@ -60,6 +61,7 @@ class PoseRecord:
     timings: dict[str, float] = field(default_factory=dict)
     tracked: bool = False
     carried: bool = False
+    verification: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -91,6 +93,7 @@ class PoseRecord:
             "inliers_px": np.asarray(self.inliers_px, dtype=float).reshape(-1).tolist(),
             "tracked": bool(self.tracked),
             "carried": bool(self.carried),
+            "verification": float(self.verification),
         }
         for stage in STAGES:
             row[f"time_{stage}_s"] = float(self.timings.get(stage, 0.0))

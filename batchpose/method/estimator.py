@@ -9,10 +9,12 @@ goes through these steps (docs/method.md):
 2. estimate: tracked (:func:`batchpose.method.tracked.estimate_tracked`: follow, estimate the rest afresh,
    seed) or fresh (:func:`batchpose.method.single.estimate_image`);
 3. the weak-pose check (:func:`batchpose.method.verify.verify_weak`);
-4. one image region, one object (:func:`batchpose.method.region.claim_regions`);
-5. depth: alignment and search (:func:`batchpose.method.with_depth.use_depth`);
-6. the plane search (:func:`batchpose.method.on_plane.use_plane`);
-7. back to the full frame's pixels, and the frame's ids on every record.
+4. the verification score (:func:`batchpose.method.score.verify_poses`);
+5. one image region, one object (:func:`batchpose.method.region.claim_regions`);
+6. depth: alignment and search (:func:`batchpose.method.with_depth.use_depth`);
+7. the plane search (:func:`batchpose.method.on_plane.use_plane`), and the verification score of the poses
+   the searches found;
+8. back to the full frame's pixels, and the frame's ids on every record.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from batchpose.method.objects import Objects
 from batchpose.method.on_plane import use_plane
 from batchpose.method.records import FAILED, Replaced, failure_status, to_full_size
 from batchpose.method.region import claim_regions
+from batchpose.method.score import verify_poses
 from batchpose.method.sequence import Sequence
 from batchpose.method.single import estimate_image
 from batchpose.method.templates import TemplateLibrary
@@ -144,20 +147,26 @@ class PoseEstimator:
     def _check_and_search(
         self, frame: Frame, full: Frame, rgb: np.ndarray, records: list[PoseRecord], sequence: Sequence, replaced
     ) -> None:
-        """The optional frame-level steps after the estimate: the weak-pose check, one region for one object,
-        depth alignment and search, the plane search (not where the depth search ran). A bug in one leaves the
-        poses as they were before it."""
+        """The optional frame-level steps after the estimate: the weak-pose check, the verification score, one
+        region for one object, depth alignment and search, the plane search (not where the depth search ran),
+        the searches' poses' verification score. A bug in one leaves the poses as they were before it."""
         conf, objects = self.conf, self.objects
         searched = conf.depth.enabled and frame.has_depth
         steps = []
         if conf.verify_below > 0:
             steps.append(("verify_weak", lambda: verify_weak(objects, frame, rgb, records, replaced)))
+        checked: dict[int, np.ndarray] = {}  # the poses scored, so the searches' new ones are scored after them
+        verify = ("verify_poses", lambda: verify_poses(objects, frame, rgb, records, sequence, checked))
+        if conf.min_verification > 0:
+            steps.append(verify)
         if conf.region.max_overlap > 0:
             steps.append(("claim_regions", lambda: claim_regions(objects, frame, rgb, records, sequence)))
         if searched:
             steps.append(("use_depth", lambda: use_depth(objects, frame, full, rgb, records, sequence)))
         if conf.plane.enabled and not (searched and conf.depth.search):
             steps.append(("use_plane", lambda: use_plane(objects, frame, rgb, records, sequence)))
+        if conf.min_verification > 0 and (searched or conf.plane.enabled):  # the searches' poses
+            steps.append(verify)
         for name, step in steps:
             try:
                 step()

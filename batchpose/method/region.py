@@ -141,7 +141,7 @@ def claim_regions(objects: Objects, frame: Frame, rgb: np.ndarray, records: list
             + ("" if by_match else f"; matches within {MATCH_MARGIN:g}: the more confident pose kept")
             + ")"
         )
-        _forget(sequence, lose)
+        sequence.drop(lose)
     share = (time.perf_counter() - t0) / max(len(claims), 1)
     for c in claims.values():
         c.rec.timings["refine"] = c.rec.timings.get("refine", 0.0) + share
@@ -220,11 +220,3 @@ def _hull_polygon(hull: np.ndarray, T: np.ndarray, cam: Camera) -> np.ndarray | 
     image = np.array([[-0.5, -0.5], [w, -0.5], [w, h], [-0.5, h]], np.float32)
     area, cut = cv2.intersectConvexConvex(poly, image)
     return cut.reshape(-1, 2).astype(np.float32) if area > 0 and cut is not None else np.zeros((0, 2), np.float32)
-
-
-def _forget(sequence: Sequence, rec: PoseRecord) -> None:
-    """The sequence no longer follows a pose that lost its region: its track, and its last confident pose
-    when this frame set it."""
-    sequence.tracks.pop(rec.obj_name, None)
-    if sequence.last.get(rec.obj_name) is rec.cam_from_model:
-        sequence.last.pop(rec.obj_name)

@@ -19,6 +19,7 @@ import numpy as np
 
 from batchpose.config import TrackConfig
 from batchpose.core.frames import Frame
+from batchpose.core.poses import PoseRecord
 from batchpose.method.track import Track
 
 
@@ -73,6 +74,16 @@ class Sequence:
     previous: PreviousFrame | None = None
     found: dict[str, SearchPose] = field(default_factory=dict)
     placed: dict[str, SearchPose] = field(default_factory=dict)
+
+    def drop(self, rec: PoseRecord) -> None:
+        """Stop following a pose found wrong after the estimate (``rec``): its track, and its last
+        confident pose and search poses when this frame set them."""
+        self.tracks.pop(rec.obj_name, None)
+        if self.last.get(rec.obj_name) is rec.cam_from_model:
+            self.last.pop(rec.obj_name)
+        for store in (self.found, self.placed):
+            if rec.obj_name in store and store[rec.obj_name].cam_from_model is rec.cam_from_model:
+                store.pop(rec.obj_name)
 
     def forget(self) -> None:
         """Forget everything: the next frame starts a new sequence (a frame that could not be read breaks

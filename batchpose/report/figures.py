@@ -413,25 +413,27 @@ def _adds_panel(ax, x: np.ndarray, scored: tuple[np.ndarray, np.ndarray], sel: n
     ax.set_yscale("log")
 
 
-def pr_figure(curve) -> str:
-    """Precision against recall of the run's poses as the confidence threshold sweeps
-    (:class:`batchpose.report.precision.PrCurve`), the run's own threshold and its ok poses marked."""
+def pr_figure(curves) -> str:
+    """Precision against recall of the run's poses as a threshold sweeps, one line per
+    :class:`batchpose.report.precision.PrCurve` (confidence, verification score), each with the run's own
+    threshold marked, and the run's ok poses."""
     fig = _new_figure(4.6, 3.4)
     ax = fig.add_subplot(1, 1, 1)
-    ax.plot(curve.recall, curve.precision, "-", color="#4c72b0", lw=1.6, marker=".", ms=3, label="confidence ≥ t")
-    at = curve.thresholds >= curve.default_threshold if curve.default_threshold is not None else None
-    if at is not None and at.any():
-        i = int(np.flatnonzero(at)[-1])  # thresholds descend: the poses kept at the run's threshold
-        ax.plot(curve.recall[i], curve.precision[i], "o", color="#dd8452", ms=11, mfc="none", mew=1.8,
-                label=f"t = min_confidence {curve.default_threshold:g}")  # fmt: skip
-    r, p = curve.ok_point
+    for curve, colour in zip(curves, ("#4c72b0", "#c44e52"), strict=False):
+        ax.plot(curve.recall, curve.precision, "-", color=colour, lw=1.6, marker=".", ms=3, label=f"{curve.by} ≥ t")
+        at = curve.thresholds >= curve.default_threshold if curve.default_threshold is not None else None
+        if at is not None and at.any():
+            i = int(np.flatnonzero(at)[-1])  # thresholds descend: the poses kept at the run's threshold
+            ax.plot(curve.recall[i], curve.precision[i], "o", color=colour, ms=11, mfc="none", mew=1.8,
+                    label=f"t = min_{curve.by} {curve.default_threshold:g}")  # fmt: skip
+    r, p = curves[0].ok_point
     if np.isfinite(r) and np.isfinite(p):
         ax.plot(r, p, "x", color="#2f7d32", ms=8, mew=2, label="the run's ok poses")
     ax.set_xlim(0, 1.02)
     ax.set_ylim(0, 1.02)
     ax.set_xlabel("recall (instances with a correct pose)", fontsize=8.5)
     ax.set_ylabel("precision (correct poses)", fontsize=8.5)
-    ax.set_title("Precision vs recall as the confidence threshold t sweeps\ncorrect: ADD-S < 0.2 d", fontsize=9)
+    ax.set_title("Precision vs recall as a threshold t sweeps\ncorrect: ADD-S < 0.2 d", fontsize=9)
     ax.tick_params(labelsize=7.5)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower left", fontsize=7.5, frameon=False)

@@ -246,13 +246,18 @@ def _gt_results(run: RunData, summary: pd.DataFrame, per_instance: pd.DataFrame)
 
 
 def _pr_plot(run: RunData, n_instances: int) -> str | None:
-    """The precision-recall curve of the run's poses (None without ground truth or poses to sweep)."""
+    """The precision-recall curves of the run's poses, by confidence and (where the run has it) by the
+    verification score (None without ground truth or poses to sweep)."""
     if run.gt is None or not len(run.gt):
         return None
     points, diameters = run.model_points(run.gt["obj_name"])
     table = precision.pose_table(run.poses, run.gt, points, diameters)
-    curve = precision.pr_curve(table, n_instances, precision.min_confidence(run.config_text))
-    return figures.pr_figure(curve) if curve is not None else None
+    curves = [
+        precision.pr_curve(table, n_instances, precision.min_confidence(run.config_text, f"min_{by}"), by)
+        for by in ("confidence", "verification")
+    ]
+    curves = [c for c in curves if c is not None]
+    return figures.pr_figure(curves) if curves else None
 
 
 def _detections(run: RunData, summary: pd.DataFrame) -> dict[str, Any]:

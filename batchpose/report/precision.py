@@ -13,8 +13,10 @@ pose of an object the ground truth does not list in its frame is a pose of an ab
 - carried: ok poses the carry stage found (``carried``, :mod:`batchpose.stages.carry`), and how many of them
   are correct.
 
-The curve takes every pose the run produced with a finite pose and a confidence (ok, and those rejected
-for low confidence) and sweeps the confidence threshold over them.
+The curves take every pose the run produced with a finite pose and a confidence (ok, and those rejected
+for low confidence) and sweep a threshold over them: over the confidence, and over the verification score
+(``min_verification``, :mod:`batchpose.method.score`) where the run has one; a pose the score does not
+judge (a tracked one) stays in at every threshold of that curve.
 """
 
 from __future__ import annotations
@@ -34,7 +36,9 @@ CORRECT_FRACTION = 0.2
 #: Statuses whose rows carry a pose and a confidence the curve sweeps over.
 SCORED_STATUSES = ("ok", "low_confidence")
 #: Columns of :func:`pose_table`.
-POSE_COLUMNS = ("frame_id", "obj_name", "status", "confidence", "present", "adds_m", "correct", "carried")
+POSE_COLUMNS = (
+    "frame_id", "obj_name", "status", "confidence", "verification", "present", "adds_m", "correct", "carried"
+)  # fmt: skip
 
 
 def _gt_keys(gt: pd.DataFrame) -> set[tuple[str, str]]:
@@ -54,9 +58,10 @@ def pose_table(
         diameters: obj_name -> diameter, metres.
 
     Returns:
-        :data:`POSE_COLUMNS`: ``present`` (the ground truth lists the object in that frame), ``adds_m`` (ADD-S
-        to the truth, metres; +inf when absent), ``correct`` (present and ADD-S < 0.2 d) and ``carried``
-        (the carry stage's pose; False in runs without the column).
+        :data:`POSE_COLUMNS`: ``verification`` (NaN where not scored), ``present`` (the ground truth lists the
+        object in that frame), ``adds_m`` (ADD-S to the truth, metres; +inf when absent), ``correct``
+        (present and ADD-S < 0.2 d) and ``carried`` (the carry stage's pose; False in runs without the
+        column).
     """
     present = _gt_keys(gt)
     rows = metrics.pick_estimates(poses[poses["status"].isin(SCORED_STATUSES)])
@@ -75,7 +80,8 @@ def pose_table(
         diam = float(diameters.get(key[1], np.nan))
         carried = r.get("carried") in (True, np.True_)  # (NaN, None: a run before the carry stage)
         correct = adds_m < CORRECT_FRACTION * diam
-        out.append((*key, r["status"], float(r["confidence"]), key in present, adds_m, correct, carried))
+        verification = float(r.get("verification", np.nan))  # (NaN: not scored, or a run before the score)
+        out.append((*key, r["status"], float(r["confidence"]), verification, key in present, adds_m, correct, carried))
     return pd.DataFrame(out, columns=list(POSE_COLUMNS))
 
 
@@ -144,23 +150,30 @@ def trust_columns(summary: pd.DataFrame, table: pd.DataFrame, absent: pd.DataFra
 
 @dataclass(frozen=True)
 class PrCurve:
-    """Precision and recall of the poses with confidence >= each threshold (thresholds descending)."""
+    """Precision and recall of the poses whose ``by`` (confidence or verification) is >= each threshold
+    (thresholds descending)."""
 
     thresholds: np.ndarray
     precision: np.ndarray
     recall: np.ndarray
     default_threshold: float | None
-    """The run's ``min_confidence`` (its ok threshold), None when its config does not say."""
+    """The run's ``min_confidence`` or ``min_verification`` (its ok threshold), None when its config does not
+    say."""
     ok_point: tuple[float, float]
     """(recall, precision) of the poses the run called ok."""
+    by: str = "confidence"
+    """The column swept."""
 
 
-def pr_curve(table: pd.DataFrame, n_instances: int, default_threshold: float | None) -> PrCurve | None:
-    """The precision-recall curve of :func:`pose_table`'s poses as the confidence threshold sweeps (None
-    without poses or instances)."""
-    if table.empty or n_instances == 0:
+def pr_curve(
+    table: pd.DataFrame, n_instances: int, default_threshold: float | None, by: str = "confidence"
+) -> PrCurve | None:
+    """The precision-recall curve of :func:`pose_table`'s poses as the threshold on ``by`` sweeps (None
+    without poses or instances, or, for ``verification``, without a scored pose). A pose without a
+    verification score is kept at every threshold of its curve."""
+    if table.empty or n_instances == 0 or not np.isfinite(table[by].to_numpy(float)).any():
         return None
-    conf = table["confidence"].to_numpy(float)
+    conf = np.nan_to_num(table[by].to_numpy(float), nan=np.inf)
     correct = table["correct"].to_numpy(bool)
     order = np.argsort(-conf, kind="stable")
     conf, correct = conf[order], correct[order]
@@ -169,16 +182,17 @@ def pr_curve(table: pd.DataFrame, n_instances: int, default_threshold: float | N
     n = (np.arange(len(conf)) + 1)[last]
     everything = trust(table, table.iloc[:0].assign(ok=False), n_instances)
     return PrCurve(
-        conf[last], tp / n, tp / n_instances, default_threshold, (everything.ok_recall, everything.ok_precision)
+        conf[last], tp / n, tp / n_instances, default_threshold, (everything.ok_recall, everything.ok_precision), by
     )
 
 
-def min_confidence(config_text: str) -> float | None:
-    """The ok threshold a run used (``pipeline.min_confidence`` of its ``config.yaml``), None when absent."""
+def min_confidence(config_text: str, key: str = "min_confidence") -> float | None:
+    """An ok threshold a run used (``pipeline.<key>`` of its ``config.yaml``: ``min_confidence`` or
+    ``min_verification``), None when absent."""
     try:
         saved = yaml.safe_load(config_text) if config_text else None
     except yaml.YAMLError:
         return None
     pipeline = saved.get("pipeline") if isinstance(saved, dict) else None
-    value = pipeline.get("min_confidence") if isinstance(pipeline, dict) else None
+    value = pipeline.get(key) if isinstance(pipeline, dict) else None
     return float(value) if isinstance(value, (int, float)) else None

@@ -1,0 +1,183 @@
+"""The verification score (``min_verification``, :func:`verify_poses`): the mesh rendered at a pose, compared
+with the frame, as one number a user can read — the estimated probability that the pose is on the object.
+
+Three comparisons of the render with the frame, each blind to how the pose was found (first pass, retry,
+search), over the object's pixels that no other reported pose hides:
+
+- **outline**: how much better the render's outline meets the frame's edges at the pose than beside it. An
+  outline pixel is met when the frame has an edge of about its orientation (LINE-2D's gradient orientations,
+  :data:`N_ORIENTATIONS` bins over a half turn, one bin either way, spread :data:`SPREAD_PX` px) there; the
+  share met at the pose, ``s``, is compared with the mean share met with the outline moved
+  :data:`SHIFT_PX` px eight ways, ``b``: ``(s - b) / (1 - b)``. A right pose's outline meets edges where it
+  is and fewer beside it; a pose laid over clutter meets as many everywhere.
+- **gradient**: :func:`batchpose.method.appearance.gradient_match` of the render's and the frame's Sobel
+  gradients over the silhouette.
+- **texture**: :func:`batchpose.method.appearance.texture_match` (Lab correlation), as ``verify_below``'s.
+
+The score is a logistic function of the three (:data:`WEIGHTS`, fitted by ``benchmarks/verification.py``
+on synthetic held-out frames, never on the real frames it is measured on), so 0.5 means about even odds on
+the frames it was fitted on. ``poses.parquet`` holds it as ``verification`` for every pose it scored; tracked
+poses are not scored (the tracker checks them frame to frame) and hold NaN.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from batchpose.core.frames import Frame
+from batchpose.core.poses import PoseRecord
+from batchpose.method.appearance import gradient_match, texture_match
+from batchpose.method.objects import Objects
+from batchpose.method.records import pose_of
+from batchpose.method.sequence import Sequence
+
+#: Gradient orientation bins over a half turn (an edge's sign is not compared).
+N_ORIENTATIONS = 8
+#: A frame pixel is an edge when its Sobel gradient (3x3, after a 3x3 Gaussian) is at least this strong.
+EDGE_STRENGTH = 40.0
+#: Each frame edge is spread this many pixels, so an outline a pixel or two off still meets it.
+SPREAD_PX = 2
+#: The outline is also tried this far off (eight ways) for the chance of meeting edges there.
+SHIFT_PX = 8
+_SHIFTS = [(SHIFT_PX, 0), (-SHIFT_PX, 0), (0, SHIFT_PX), (0, -SHIFT_PX)] + [
+    (a * SHIFT_PX * 3 // 4, b * SHIFT_PX * 3 // 4) for a in (1, -1) for b in (1, -1)
+]
+#: Fewer outline pixels than this in view (off the image, hidden by other poses): no outline term (0).
+MIN_OUTLINE_PX = 20
+#: Logistic weights of (1, outline, gradient, texture); see ``benchmarks/verification.py``.
+WEIGHTS = (-5.99, 3.11, 11.83, 4.32)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The render-and-compare terms of one pose (see the module docstring)."""
+
+    outline: float
+    gradient: float
+    texture: float
+
+    def score(self) -> float:
+        """The verification score in (0, 1)."""
+        w = WEIGHTS
+        z = w[0] + w[1] * self.outline + w[2] * self.gradient + w[3] * self.texture
+        return float(1.0 / (1.0 + np.exp(-z)))
+
+
+class FrameEdges:
+    """The frame's edges by orientation, spread (one bit per orientation bin), made once per frame."""
+
+    def __init__(self, rgb: np.ndarray) -> None:
+        self.gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        self.lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+        bins, strong = orientations(self.gray, EDGE_STRENGTH)
+        bits = np.where(strong, np.left_shift(1, bins), 0).astype(np.uint8)
+        kernel = np.ones((2 * SPREAD_PX + 1, 2 * SPREAD_PX + 1), np.uint8)
+        self.spread = np.zeros_like(bits)
+        for i in range(N_ORIENTATIONS):
+            self.spread |= cv2.dilate((bits >> i) & 1, kernel) << i
+
+    def met(self, ys: np.ndarray, xs: np.ndarray, bins: np.ndarray, dy: int = 0, dx: int = 0) -> float:
+        """The share of outline pixels (ys, xs) with orientation ``bins`` that meet a frame edge of about that
+        orientation when moved by (dy, dx); of those still on the image."""
+        h, w = self.spread.shape
+        y, x = ys + dy, xs + dx
+        inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+        if not inside.any():
+            return 0.0
+        b = bins[inside]
+        want = sum(np.left_shift(1, (b + k) % N_ORIENTATIONS) for k in (-1, 0, 1)).astype(np.uint8)
+        return float(((self.spread[y[inside], x[inside]] & want) > 0).mean())
+
+
+def orientations(gray: np.ndarray, strength: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each pixel's gradient orientation bin (of :data:`N_ORIENTATIONS` over a half turn) and whether its
+    gradient is at least ``strength`` strong."""
+    g = cv2.GaussianBlur(gray.astype(np.float32), (3, 3), 0)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    angle = np.arctan2(gy, gx) % np.pi
+    bins = np.floor(angle / np.pi * N_ORIENTATIONS).astype(np.int64) % N_ORIENTATIONS
+    return bins, np.hypot(gx, gy) >= strength
+
+
+def compare(edges: FrameEdges, rendered_rgb: np.ndarray, depth: np.ndarray, seen: np.ndarray) -> Comparison | None:
+    """The render (``rendered_rgb``, ``depth``) against the frame over the pixels ``seen`` (the render's, less
+    what other poses hide); None under 30 such pixels."""
+    if seen.sum() < 30:
+        return None
+    mask = (depth > 0).astype(np.uint8)
+    outline = (mask > 0) & (cv2.erode(mask, np.ones((3, 3), np.uint8)) == 0) & seen
+    ys, xs = np.nonzero(outline)
+    term = 0.0
+    if len(ys) >= MIN_OUTLINE_PX:
+        bins, _ = orientations(cv2.GaussianBlur(mask.astype(np.float32) * 255.0, (5, 5), 0), 0.0)
+        b = bins[ys, xs]
+        at = edges.met(ys, xs, b)
+        beside = float(np.mean([edges.met(ys, xs, b, dy, dx) for dy, dx in _SHIFTS]))
+        term = (at - beside) / max(1.0 - beside, 0.05)
+    rendered_gray = cv2.cvtColor(rendered_rgb, cv2.COLOR_RGB2GRAY)
+    near = cv2.dilate(seen.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    return Comparison(
+        float(np.clip(term, -1.0, 1.0)),
+        gradient_match(edges.gray, rendered_gray, near),
+        texture_match(edges.lab[seen], rendered_rgb[seen]),
+    )
+
+
+def verify_poses(
+    objects: Objects,
+    frame: Frame,
+    rgb: np.ndarray,
+    records: list[PoseRecord],
+    sequence: Sequence,
+    checked: dict[int, np.ndarray] | None = None,
+) -> None:
+    """``min_verification``: score every untracked ok pose (and the low-confidence ones, for the report's
+    curve); an ok pose scoring under the threshold becomes low_confidence and leaves the sequence's tracks.
+    Run after the estimate and again after the searches: ``checked`` (id(record) -> the pose it was scored
+    at, kept between the two) skips the poses scored already."""
+    checked = {} if checked is None else checked
+    conf = objects.conf
+    scored = [
+        r for r in records
+        if r.status in ("ok", "low_confidence") and not r.tracked and r.cam_from_model is not None
+        and checked.get(id(r)) is not r.cam_from_model and r.obj_name in objects.models
+    ]  # fmt: skip
+    if objects.renderer is None or not scored:
+        return
+    t0 = time.perf_counter()
+    cam = frame.camera
+    shown = {
+        r.obj_name: objects.render(r.obj_name, pose_of(r), cam)
+        for r in records
+        if r.ok and r.obj_name in objects.models
+    }
+    edges = FrameEdges(rgb)
+    shared = (time.perf_counter() - t0) / len(scored)
+    for rec in scored:
+        t1 = time.perf_counter()
+        ren_rgb, depth = shown.get(rec.obj_name) if rec.ok else objects.render(rec.obj_name, pose_of(rec), cam)
+        seen = depth > 0
+        for name, (_, other) in shown.items():
+            if name != rec.obj_name:
+                seen &= ~((other > 0) & (other < depth - 0.01))
+        found = compare(edges, ren_rgb, depth, seen)
+        rec.verification = found.score() if found is not None else 0.0
+        checked[id(rec)] = rec.cam_from_model
+        if rec.ok and rec.verification < conf.min_verification:
+            rec.status = "low_confidence"
+            what = (
+                f"outline {found.outline:.2f}, gradient {found.gradient:.2f}, texture {found.texture:.2f}"
+                if found is not None
+                else "under 30 px of it in view"
+            )
+            rec.reason = (
+                f"{rec.reason + '; ' if rec.reason else ''}verification {rec.verification:.2f} < "
+                f"min_verification {conf.min_verification:g} ({what})"
+            )
+            sequence.drop(rec)
+        rec.timings["refine"] = rec.timings.get("refine", 0.0) + shared + time.perf_counter() - t1
