@@ -52,9 +52,9 @@ def _moved(pose: np.ndarray, dx_m: float = 0.0, turn_deg: float = 0.0) -> np.nda
 
 
 def test_the_true_pose_scores_high_and_wrong_poses_low(demo):
-    """The cracker box at its ground-truth pose scores over 0.8 (0.93 measured); moved 3 cm aside, turned 30 degrees about its
-    long axis, on the wrong object (the gelatin box at the cracker box's pose) or on the bare table beside
-    it, under 0.5 (the default ``min_verification``)."""
+    """The cracker box at its ground-truth pose scores over 0.8 (0.93 measured); moved 3 cm aside, turned 30
+    degrees about its long axis, on the wrong object (the gelatin box at the cracker box's pose) or on the
+    bare table beside it, under 0.5 (the default ``min_verification``)."""
     truth = demo[2]
     assert _score(demo, CRACKER, truth) > 0.8
     for name, pose in (
@@ -83,7 +83,7 @@ def test_verify_poses_rejects_an_ok_pose_that_does_not_look_like_the_frame(demo)
     assert wrong.status == "low_confidence" and wrong.verification < 0.5
     assert "verification" in wrong.reason and "min_verification 0.5" in wrong.reason and "outline" in wrong.reason
     assert BOX not in sequence.tracks and BOX not in sequence.last
-    assert right.timings["refine"] > 0
+    assert right.timings["verify"] > 0
     verify_poses(objects, frame, rgb, [tracked], Sequence())
     assert tracked.ok and np.isnan(tracked.verification)
     strict = Objects(

@@ -34,8 +34,8 @@ STATUSES = (
 )
 #: Per-(frame, object) timing stages, in pipeline order.
 STAGES = (
-    "decode", "track", "sift", "presence", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "seed",
-    "depth", "plane",
+    "decode", "track", "sift", "presence", "match", "fine", "weights", "ransac", "gnc", "lm", "refine", "verify",
+    "seed", "depth", "plane",
 )  # fmt: skip
 
 

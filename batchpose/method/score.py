@@ -48,6 +48,8 @@ _SHIFTS = [(SHIFT_PX, 0), (-SHIFT_PX, 0), (0, SHIFT_PX), (0, -SHIFT_PX)] + [
 ]
 #: Fewer outline pixels than this in view (off the image, hidden by other poses): no outline term (0).
 MIN_OUTLINE_PX = 20
+#: The comparison's box reaches this far beyond the render, for its filters' support.
+_MARGIN_PX = 6
 #: Logistic weights of (1, outline, gradient, texture); see ``benchmarks/verification.py``.
 WEIGHTS = (-5.99, 3.11, 11.83, 4.32)
 
@@ -99,32 +101,37 @@ def orientations(gray: np.ndarray, strength: float) -> tuple[np.ndarray, np.ndar
     g = cv2.GaussianBlur(gray.astype(np.float32), (3, 3), 0)
     gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
     gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    angle = np.arctan2(gy, gx) % np.pi
-    bins = np.floor(angle / np.pi * N_ORIENTATIONS).astype(np.int64) % N_ORIENTATIONS
-    return bins, np.hypot(gx, gy) >= strength
+    angle = cv2.phase(gx, gy)  # [0, 2 pi)
+    bins = (angle * (N_ORIENTATIONS / np.pi)).astype(np.int64) % N_ORIENTATIONS
+    return bins, cv2.magnitude(gx, gy) >= strength
 
 
 def compare(edges: FrameEdges, rendered_rgb: np.ndarray, depth: np.ndarray, seen: np.ndarray) -> Comparison | None:
     """The render (``rendered_rgb``, ``depth``) against the frame over the pixels ``seen`` (the render's, less
-    what other poses hide); None under 30 such pixels."""
+    what other poses hide); None under 30 such pixels. Computed in the render's bounding box (and a margin
+    the filters need)."""
     if seen.sum() < 30:
         return None
-    mask = (depth > 0).astype(np.uint8)
+    ys, xs = np.nonzero(depth > 0)
+    m = _MARGIN_PX
+    y0, x0 = max(int(ys.min()) - m, 0), max(int(xs.min()) - m, 0)
+    box = np.s_[y0 : int(ys.max()) + m + 1, x0 : int(xs.max()) + m + 1]
+    mask, seen, rgb = (depth[box] > 0).astype(np.uint8), seen[box], rendered_rgb[box]
     outline = (mask > 0) & (cv2.erode(mask, np.ones((3, 3), np.uint8)) == 0) & seen
     ys, xs = np.nonzero(outline)
     term = 0.0
     if len(ys) >= MIN_OUTLINE_PX:
         bins, _ = orientations(cv2.GaussianBlur(mask.astype(np.float32) * 255.0, (5, 5), 0), 0.0)
         b = bins[ys, xs]
+        ys, xs = ys + y0, xs + x0
         at = edges.met(ys, xs, b)
         beside = float(np.mean([edges.met(ys, xs, b, dy, dx) for dy, dx in _SHIFTS]))
         term = (at - beside) / max(1.0 - beside, 0.05)
-    rendered_gray = cv2.cvtColor(rendered_rgb, cv2.COLOR_RGB2GRAY)
     near = cv2.dilate(seen.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
     return Comparison(
         float(np.clip(term, -1.0, 1.0)),
-        gradient_match(edges.gray, rendered_gray, near),
-        texture_match(edges.lab[seen], rendered_rgb[seen]),
+        gradient_match(edges.gray[box], cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), near),
+        texture_match(edges.lab[box][seen], rgb[seen]),
     )
 
 
@@ -151,20 +158,25 @@ def verify_poses(
         return
     t0 = time.perf_counter()
     cam = frame.camera
-    shown = {
-        r.obj_name: objects.render(r.obj_name, pose_of(r), cam)
-        for r in records
-        if r.ok and r.obj_name in objects.models
-    }
+    boxes = {id(r): _box(objects, r, cam) for r in records if r.ok and r.obj_name in objects.models}
+    boxes.update({id(r): _box(objects, r, cam) for r in scored})
+    shown: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # id(record) -> its render, made when first needed
+
+    def render(r: PoseRecord) -> tuple[np.ndarray, np.ndarray]:
+        if id(r) not in shown:
+            shown[id(r)] = objects.render(r.obj_name, pose_of(r), cam)
+        return shown[id(r)]
+
     edges = FrameEdges(rgb)
     shared = (time.perf_counter() - t0) / len(scored)
     for rec in scored:
         t1 = time.perf_counter()
-        ren_rgb, depth = shown.get(rec.obj_name) if rec.ok else objects.render(rec.obj_name, pose_of(rec), cam)
+        ren_rgb, depth = render(rec)
         seen = depth > 0
-        for name, (_, other) in shown.items():
-            if name != rec.obj_name:
-                seen &= ~((other > 0) & (other < depth - 0.01))
+        for other in records:  # what the frame's other ok poses in front of it hide
+            if other.ok and other.obj_name != rec.obj_name and _meet(boxes.get(id(other)), boxes[id(rec)]):
+                _, there = render(other)
+                seen &= ~((there > 0) & (there < depth - 0.01))
         found = compare(edges, ren_rgb, depth, seen)
         rec.verification = found.score() if found is not None else 0.0
         checked[id(rec)] = rec.cam_from_model
@@ -180,4 +192,22 @@ def verify_poses(
                 f"min_verification {conf.min_verification:g} ({what})"
             )
             sequence.drop(rec)
-        rec.timings["refine"] = rec.timings.get("refine", 0.0) + shared + time.perf_counter() - t1
+        rec.timings["verify"] = rec.timings.get("verify", 0.0) + shared + time.perf_counter() - t1
+
+
+def _box(objects: Objects, rec: PoseRecord, cam) -> tuple[float, float, float, float] | None:
+    """The image box (x0, y0, x1, y1) of the object's convex hull at the record's pose; None when any of it
+    is behind the camera (it may cover anything)."""
+    T = pose_of(rec)
+    p = objects.hull(rec.obj_name) @ T[:3, :3].T + T[:3, 3]
+    if np.any(p[:, 2] <= 1e-3):
+        return None
+    uv = p[:, :2] / p[:, 2:] * np.diag(cam.K)[:2] + cam.K[:2, 2]
+    return (*uv.min(axis=0), *uv.max(axis=0))
+
+
+def _meet(a, b) -> bool:
+    """Whether two :func:`_box` boxes overlap (a None box meets every box)."""
+    if a is None or b is None:
+        return True
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
