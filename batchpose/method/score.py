@@ -179,7 +179,7 @@ def verify_poses(
                 seen &= ~((there > 0) & (there < depth - 0.01))
         found = compare(edges, ren_rgb, depth, seen)
         rec.verification = found.score() if found is not None else 0.0
-        checked[id(rec)] = rec.cam_from_model
+        checked[id(rec)] = pose_of(rec)
         if rec.ok and rec.verification < conf.min_verification:
             rec.status = "low_confidence"
             what = (
