@@ -725,6 +725,7 @@ def _rows(stamps: list[int], rng: np.random.Generator, fail: set[int]) -> list[d
                 "R": T[:3, :3].reshape(-1).tolist() if ok else [np.nan] * 9,
                 "t_m": T[:3, 3].tolist() if ok else [np.nan] * 3,
                 "confidence": 0.8 if ok else 0.0,
+                "verification": 0.9 if ok and i != 1 else np.nan,  # a tracked pose is not scored
                 "n_inliers": 12 if ok else 0,
                 "inliers_px": [10.0, 12.0, 20.5, 30.0] if ok else [],
                 "tracked": i == 1,
@@ -840,11 +841,13 @@ def test_write_back_keeps_input_byte_identical_and_adds_decodable_topics(tmp_pat
         assert ann.texts[0].text == "box ok 0.80" + (" tracked" if row["tracked"] else "")
     assert [o["tracked"] for st in status for o in st["objects"]] == [False, True, False, False, False]
     assert [s["n_ok"] for s in status] == [1, 1, 0, 1, 1]
+    assert [o["verification"] for st in status for o in st["objects"]] == [0.9, None, None, 0.9, 0.9]
     assert status[2]["objects"][0] == {
         "obj_name": "box",
         "status": "too_few_matches",
         "reason": "3 matches",
         "confidence": 0.0,
+        "verification": None,
         "n_inliers": 0,
         "tracked": False,
     }

@@ -79,7 +79,7 @@ def test_trajectory_csv_names_times_and_poses(own_run):
     traj = pd.read_csv(own_run / "trajectory.csv", dtype={"frame_id": str})
     assert list(traj.columns) == [
         "stamp_ns", "frame_id", "object", "obj_id", "x_m", "y_m", "z_m", "qx", "qy", "qz", "qw",
-        "status", "confidence", "tracked",
+        "status", "confidence", "verification", "tracked",
     ]  # fmt: skip
     assert len(traj) == len(poses) == 4
     frames = pd.read_parquet(own_run / "frames.parquet").set_index("frame_id")["stamp_ns"]
@@ -90,6 +90,7 @@ def test_trajectory_csv_names_times_and_poses(own_run):
         R = Rotation.from_quat([row.qx, row.qy, row.qz, row.qw]).as_matrix()
         assert np.allclose(R, np.asarray(p["R"]).reshape(3, 3), atol=1e-6)
         assert np.allclose([row.x_m, row.y_m, row.z_m], p["t_m"], atol=1e-8)
+        assert row.verification == pytest.approx(p["verification"]) and row.verification > 0.5  # scored, passed
     # the pose against the data set's ground truth (the frames' meta.mat, not given to the run)
     for f, row in zip(FRAMES, cracker.itertuples(), strict=True):
         meta = scipy.io.loadmat(YCBV / f"{f}-meta.mat")

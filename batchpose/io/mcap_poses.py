@@ -120,11 +120,13 @@ def _status_entry(r: Mapping[str, Any]) -> dict:
     """One object's entry of a ``/batchpose/status`` message (:data:`STATUS_JSON_SCHEMA`)."""
     conf = float(r.get("confidence", 0.0) or 0.0)
     conf = conf if np.isfinite(conf) else 0.0  # JSON has no NaN
+    score = r.get("verification")
     return {
         "obj_name": str(r["obj_name"]),
         "status": str(r["status"]),
         "reason": str(r.get("reason", "") or ""),
         "confidence": conf,
+        "verification": float(score) if score is not None and np.isfinite(score) else None,
         "n_inliers": int(r.get("n_inliers", 0) or 0),
         "tracked": bool(r.get("tracked", False)),
     }

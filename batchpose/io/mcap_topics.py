@@ -143,6 +143,10 @@ STATUS_JSON_SCHEMA = {
                     "status": {"type": "string"},
                     "reason": {"type": "string"},
                     "confidence": {"type": "number"},
+                    "verification": {
+                        "type": ["number", "null"],
+                        "description": "the verification score (null: not scored, e.g. a tracked pose)",
+                    },
                     "n_inliers": {"type": "integer"},
                     "tracked": {"type": "boolean", "description": "followed from the previous frame"},
                 },

@@ -30,6 +30,7 @@ TRAJECTORY_COLUMNS = (
     "qw",
     "status",
     "confidence",
+    "verification",
     "tracked",
 )
 
@@ -58,6 +59,7 @@ def trajectory(poses: pd.DataFrame) -> pd.DataFrame:
         out[col] = quat[:, i]
     out["status"] = poses["status"].astype(str).to_numpy()
     out["confidence"] = poses["confidence"].astype(float).to_numpy()
+    out["verification"] = poses["verification"].astype(float).to_numpy() if "verification" in poses else np.nan
     out["tracked"] = poses["tracked"].astype(bool).to_numpy() if "tracked" in poses else False
     return out[list(TRAJECTORY_COLUMNS)]
 
