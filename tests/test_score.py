@@ -69,8 +69,8 @@ def test_the_true_pose_scores_high_and_wrong_poses_low(demo):
 def test_verify_poses_rejects_an_ok_pose_that_does_not_look_like_the_frame(demo):
     """Two untracked ok poses: the true one stays ok with its score recorded; the one 3 cm aside becomes
     low_confidence, its reason naming the score and its terms, and leaves the sequence. A tracked pose is
-    not scored. Off (``min_verification`` 0) the step is not run by the estimator; with a threshold of
-    0.999 even the true pose fails."""
+    not scored. With a threshold of 0.999 even the true pose fails; with the depth step on, a frame with
+    depth keeps its poses ok whatever their score (the depth judges them)."""
     frame, rgb, truth, objects = demo
     right = PoseRecord(frame.frame_id, CRACKER, "ok", cam_from_model=truth.copy(), confidence=0.9)
     wrong = PoseRecord(frame.frame_id, BOX, "ok", cam_from_model=_moved(truth, dx_m=0.05), confidence=0.9)
@@ -93,3 +93,11 @@ def test_verify_poses_rejects_an_ok_pose_that_does_not_look_like_the_frame(demo)
     verify_poses(strict, frame, rgb, [again], Sequence())
     assert again.status == "low_confidence"
     assert right.to_row()["verification"] == pytest.approx(right.verification)
+    # With depth on (the demo frame has a depth image) the depth step judges: the score is kept, not enforced.
+    assert frame.has_depth
+    depth_on = dataclasses.replace(objects.conf, depth=dataclasses.replace(objects.conf.depth, enabled=True))
+    aside = PoseRecord(frame.frame_id, BOX, "ok", cam_from_model=_moved(truth, dx_m=0.05), confidence=0.9)
+    verify_poses(
+        Objects(depth_on, {}, models=objects.models, renderer=objects.renderer), frame, rgb, [aside], Sequence()
+    )
+    assert aside.ok and aside.verification < 0.5

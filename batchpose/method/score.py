@@ -144,11 +144,16 @@ def verify_poses(
     checked: dict[int, np.ndarray] | None = None,
 ) -> None:
     """``min_verification``: score every untracked ok pose (and the low-confidence ones, for the report's
-    curve); an ok pose scoring under the threshold becomes low_confidence and leaves the sequence's tracks.
+    curve); an ok pose scoring under the threshold becomes low_confidence and leaves the sequence's tracks
+    (not in a frame the depth step checks: ``depth.enabled`` and a depth image).
     Run after the estimate and again after the searches: ``checked`` (id(record) -> the pose it was scored
     at, kept between the two) skips the poses scored already."""
     checked = {} if checked is None else checked
     conf = objects.conf
+    # With a depth image the depth step checks every pose against the sensor; the score, fitted on RGB poses,
+    # is recorded but does not reject: colour and depth can disagree in scale (1-4.5 % on YCB-Video), and a
+    # pose aligned to the depth then renders a little larger than the colour image shows it.
+    judged_by_depth = conf.depth.enabled and frame.has_depth
     scored = [
         r for r in records
         if r.status in ("ok", "low_confidence") and not r.tracked and r.cam_from_model is not None
@@ -180,7 +185,7 @@ def verify_poses(
         found = compare(edges, ren_rgb, depth, seen)
         rec.verification = found.score() if found is not None else 0.0
         checked[id(rec)] = pose_of(rec)
-        if rec.ok and rec.verification < conf.min_verification:
+        if rec.ok and rec.verification < conf.min_verification and not judged_by_depth:
             rec.status = "low_confidence"
             what = (
                 f"outline {found.outline:.2f}, gradient {found.gradient:.2f}, texture {found.texture:.2f}"
