@@ -36,7 +36,7 @@ PIPELINE_HASHES = {
     "paper.yaml": "3f1bec74e7da6c0f",
     "ransac_only.yaml": "6236791f17d7aac0",
     "rgbd.yaml": "4d42209c3f1e1a58",
-    "tp_ub.yaml": "83599a7c0c1fcf21",
+    "tp_ub.yaml": "4a55ad4f82d983c9",
 }
 
 
