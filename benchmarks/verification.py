@@ -1,9 +1,10 @@
 """Fit and check the verification score (``min_verification``, :mod:`batchpose.method.score`).
 
 For every untracked pose of finished runs that has a pose (ok and low_confidence), the mesh is rendered at it
-and compared with the frame exactly as the pipeline does (outline, gradient, texture, over the pixels the
-frame's other ok poses do not hide); the pose is *right* when its ADD-S to the ground truth is under 0.2 of
-the object's diameter (``ok`` precision's rule), wrong otherwise (an absent object's pose is wrong).
+and compared with the frame by the pipeline's own :func:`batchpose.method.score.comparisons` (outline,
+gradient, texture, over the pixels the frame's other ok poses do not hide); the pose is *right* when its
+ADD-S to the ground truth is under 0.2 of the object's diameter (``ok`` precision's rule), wrong otherwise
+(an absent object's pose is wrong).
 
 ``--fit`` fits the score's logistic weights to those poses (maximum likelihood, scipy) and prints them for
 :data:`batchpose.method.score.WEIGHTS`; fit on synthetic frames (``benchmarks/heldout.py``), never on the
@@ -34,13 +35,13 @@ from _common import code_version, machine, table  # noqa: E402
 
 from batchpose.config import load_estimator_config, load_yaml  # noqa: E402
 from batchpose.core.frames import decode_image  # noqa: E402
-from batchpose.core.poses import row_cam_from_model  # noqa: E402
+from batchpose.core.poses import PoseRecord, row_cam_from_model  # noqa: E402
 from batchpose.io.manifest import load_manifest  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
 from batchpose.io.sources import open_frames  # noqa: E402
 from batchpose.method.objects import Objects  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402
-from batchpose.method.score import WEIGHTS, FrameEdges, compare  # noqa: E402
+from batchpose.method.score import WEIGHTS, comparisons  # noqa: E402
 from batchpose.report import metrics  # noqa: E402
 
 TERMS = ("outline", "gradient", "texture")
@@ -64,28 +65,21 @@ def run_features(run: Path, manifest: Path, cache: Path | None) -> pd.DataFrame:
         here = scored[scored["frame_id"] == frame.frame_id]
         if here.empty:
             continue
-        rgb = decode_image(frame)
-        edges = FrameEdges(rgb)
         truth = {g["obj_name"]: row_cam_from_model(g) for g in gt[gt["frame_id"] == frame.frame_id].to_dict("records")}
-        poses_here = [(r, row_cam_from_model(r)) for r in here.to_dict("records")]
-        shown = {
-            r["obj_name"]: objects.render(r["obj_name"], T, frame.camera)
-            for r, T in poses_here
-            if r["status"] == "ok" and T is not None
-        }
-        for r, T in poses_here:
-            if T is None or r.get("tracked", False):
+        records, kept = [], []
+        for r in here.to_dict("records"):
+            T = row_cam_from_model(r)
+            if T is None:
                 continue
-            ok = r["status"] == "ok"
-            ren_rgb, depth = shown[r["obj_name"]] if ok else objects.render(r["obj_name"], T, frame.camera)
-            seen = depth > 0
-            for name, (_, other) in shown.items():
-                if name != r["obj_name"]:
-                    seen &= ~((other > 0) & (other < depth - 0.01))
-            found = compare(edges, ren_rgb, depth, seen)
-            G = truth.get(r["obj_name"])
+            rec = PoseRecord(frame.frame_id, r["obj_name"], r["status"], cam_from_model=T, tracked=bool(r["tracked"]))
+            records.append(rec)
+            if not rec.tracked:
+                kept.append((rec, r))
+        found = comparisons(objects, frame, decode_image(frame), records, [rec for rec, _ in kept])
+        for rec, r in kept:
+            T, G, c = rec.cam_from_model, truth.get(r["obj_name"]), found[id(rec)]
             d = np.inf if G is None else metrics.adds(T[:3, :3], T[:3, 3], G[:3, :3], G[:3, 3], points[r["obj_name"]])
-            terms = found.__dict__ if found is not None else {t: np.nan for t in TERMS}
+            terms = c.__dict__ if c is not None else {t: np.nan for t in TERMS}
             rows.append({
                 "run": str(run), "frame_id": frame.frame_id, "obj_name": r["obj_name"], "status": r["status"],
                 "confidence": float(r["confidence"]), "reason": r["reason"], **terms,

@@ -189,9 +189,9 @@ def test_precision_recall_and_absent_objects():
     assert s.loc["b", "ok_precision"] == 0.0 and s.loc["b", "ok_recall"] == 0.0 and s.loc["b", "n_ok_absent"] == 1
     assert s.loc["mean", "ok_precision"] == pytest.approx(1 / 6) and s.loc["pooled", "ok_precision"] == 0.25
     assert s.loc["pooled", "n_absent_pairs"] == 3
-    assert precision.min_confidence("pipeline:\n  min_confidence: 0.3\n") == 0.3
-    assert precision.min_confidence("pipeline:\n  min_verification: 0.4\n", "min_verification") == 0.4
-    assert precision.min_confidence("name: x\n") is None
+    assert precision.ok_threshold("pipeline:\n  min_confidence: 0.3\n") == 0.3
+    assert precision.ok_threshold("pipeline:\n  min_verification: 0.4\n", "min_verification") == 0.4
+    assert precision.ok_threshold("name: x\n") is None
     assert precision.pr_curve(table, 3, 0.5, by="verification") is None  # a run before the score: no curve
     # The verification curve: a/f1's wrong pose scores 0.1, the tracked a/f0 has no score and stays in.
     scored = poses.assign(verification=[np.nan, 0.1, 0.9, 0.6, np.nan, 0.3])

@@ -34,6 +34,7 @@ from batchpose.method.appearance import gradient_match, texture_match
 from batchpose.method.objects import Objects
 from batchpose.method.records import pose_of
 from batchpose.method.sequence import Sequence
+from batchpose.method.verify import VERIFY_MIN_PX, hidden_by
 
 #: Gradient orientation bins over a half turn (an edge's sign is not compared).
 N_ORIENTATIONS = 8
@@ -108,9 +109,9 @@ def orientations(gray: np.ndarray, strength: float) -> tuple[np.ndarray, np.ndar
 
 def compare(edges: FrameEdges, rendered_rgb: np.ndarray, depth: np.ndarray, seen: np.ndarray) -> Comparison | None:
     """The render (``rendered_rgb``, ``depth``) against the frame over the pixels ``seen`` (the render's, less
-    what other poses hide); None under 30 such pixels. Computed in the render's bounding box (and a margin
-    the filters need)."""
-    if seen.sum() < 30:
+    what other poses hide); None under :data:`VERIFY_MIN_PX` such pixels. Computed in the render's bounding
+    box (and a margin the filters need)."""
+    if seen.sum() < VERIFY_MIN_PX:
         return None
     ys, xs = np.nonzero(depth > 0)
     m = _MARGIN_PX
@@ -162,9 +163,36 @@ def verify_poses(
     if objects.renderer is None or not scored:
         return
     t0 = time.perf_counter()
+    found = comparisons(objects, frame, rgb, records, scored)
+    each = (time.perf_counter() - t0) / len(scored)
+    for rec in scored:
+        c = found[id(rec)]
+        rec.verification = c.score() if c is not None else 0.0
+        checked[id(rec)] = pose_of(rec)
+        rec.timings["verify"] = rec.timings.get("verify", 0.0) + each
+        if rec.ok and rec.verification < conf.min_verification and not judged_by_depth:
+            rec.status = "low_confidence"
+            what = (
+                f"outline {c.outline:.2f}, gradient {c.gradient:.2f}, texture {c.texture:.2f}"
+                if c is not None
+                else f"under {VERIFY_MIN_PX} px of it in view"
+            )
+            rec.reason = (
+                f"{rec.reason + '; ' if rec.reason else ''}verification {rec.verification:.2f} < "
+                f"min_verification {conf.min_verification:g} ({what})"
+            )
+            sequence.drop(rec)
+
+
+def comparisons(
+    objects: Objects, frame: Frame, rgb: np.ndarray, records: list[PoseRecord], targets: list[PoseRecord]
+) -> dict[int, Comparison | None]:
+    """id(record) -> :func:`compare` of each of ``targets`` (records with a pose) with the frame ``rgb``, over
+    the pixels the frame's other ok poses among ``records`` do not hide (rendered only where their image boxes
+    meet the target's)."""
     cam = frame.camera
     boxes = {id(r): _box(objects, r, cam) for r in records if r.ok and r.obj_name in objects.models}
-    boxes.update({id(r): _box(objects, r, cam) for r in scored})
+    boxes.update({id(r): _box(objects, r, cam) for r in targets})
     shown: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # id(record) -> its render, made when first needed
 
     def render(r: PoseRecord) -> tuple[np.ndarray, np.ndarray]:
@@ -173,31 +201,15 @@ def verify_poses(
         return shown[id(r)]
 
     edges = FrameEdges(rgb)
-    shared = (time.perf_counter() - t0) / len(scored)
-    for rec in scored:
-        t1 = time.perf_counter()
+    out: dict[int, Comparison | None] = {}
+    for rec in targets:
         ren_rgb, depth = render(rec)
         seen = depth > 0
         for other in records:  # what the frame's other ok poses in front of it hide
             if other.ok and other.obj_name != rec.obj_name and _meet(boxes.get(id(other)), boxes[id(rec)]):
-                _, there = render(other)
-                seen &= ~((there > 0) & (there < depth - 0.01))
-        found = compare(edges, ren_rgb, depth, seen)
-        rec.verification = found.score() if found is not None else 0.0
-        checked[id(rec)] = pose_of(rec)
-        if rec.ok and rec.verification < conf.min_verification and not judged_by_depth:
-            rec.status = "low_confidence"
-            what = (
-                f"outline {found.outline:.2f}, gradient {found.gradient:.2f}, texture {found.texture:.2f}"
-                if found is not None
-                else "under 30 px of it in view"
-            )
-            rec.reason = (
-                f"{rec.reason + '; ' if rec.reason else ''}verification {rec.verification:.2f} < "
-                f"min_verification {conf.min_verification:g} ({what})"
-            )
-            sequence.drop(rec)
-        rec.timings["verify"] = rec.timings.get("verify", 0.0) + shared + time.perf_counter() - t1
+                seen &= ~hidden_by(render(other)[1], depth)
+        out[id(rec)] = compare(edges, ren_rgb, depth, seen)
+    return out
 
 
 def _box(objects: Objects, rec: PoseRecord, cam) -> tuple[float, float, float, float] | None:

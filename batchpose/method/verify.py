@@ -63,6 +63,12 @@ def verify_weak(objects: Objects, frame: Frame, rgb: np.ndarray, records: list[P
         rec.timings["refine"] = rec.timings.get("refine", 0.0) + shared + time.perf_counter() - t0
 
 
+def hidden_by(front_depth: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels of a render (``depth``, metres, 0 off the mesh) that another render
+    (``front_depth``) covers over 1 cm nearer."""
+    return (front_depth > 0) & (front_depth < depth - 0.01)
+
+
 def looks_wrong(objects: Objects, rec: PoseRecord, view, shown: dict, lab: np.ndarray) -> str | None:
     """Why the weak pose ``rec``, whose mesh renders as ``view`` (rgb, depth), fails ``verify_below``'s texture
     check (over the pixels the other poses in ``shown`` do not hide); None when it passes."""
@@ -77,7 +83,7 @@ def looks_wrong(objects: Objects, rec: PoseRecord, view, shown: dict, lab: np.nd
         )
     for name, (_, other) in shown.items():
         if name != rec.obj_name:
-            seen &= ~((other > 0) & (other < depth - 0.01))
+            seen &= ~hidden_by(other, depth)
     if seen.sum() < VERIFY_MIN_PX:  # mostly hidden by reported poses: nothing to judge it by
         return None
     match = texture_match(lab[seen], ren_rgb[seen])

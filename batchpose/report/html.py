@@ -253,7 +253,7 @@ def _pr_plot(run: RunData, n_instances: int) -> str | None:
     points, diameters = run.model_points(run.gt["obj_name"])
     table = precision.pose_table(run.poses, run.gt, points, diameters)
     curves = [
-        precision.pr_curve(table, n_instances, precision.min_confidence(run.config_text, f"min_{by}"), by)
+        precision.pr_curve(table, n_instances, precision.ok_threshold(run.config_text, f"min_{by}"), by)
         for by in ("confidence", "verification")
     ]
     curves = [c for c in curves if c is not None]

@@ -186,7 +186,7 @@ def pr_curve(
     )
 
 
-def min_confidence(config_text: str, key: str = "min_confidence") -> float | None:
+def ok_threshold(config_text: str, key: str = "min_confidence") -> float | None:
     """An ok threshold a run used (``pipeline.<key>`` of its ``config.yaml``: ``min_confidence`` or
     ``min_verification``), None when absent."""
     try:
