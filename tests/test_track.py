@@ -15,6 +15,7 @@ from batchpose.core.poses import PoseRecord
 from batchpose.errors import ConfigError
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.render import get_renderer
+from batchpose.method.score import FrameEdges
 from batchpose.method.sequence import Sequence
 from batchpose.method.track import TrackResult, view_turn_deg
 from batchpose.method.tracked import refresh, seed_track
@@ -210,7 +211,7 @@ def test_a_pose_the_frame_does_not_look_like_starts_no_track(cracker_model, crac
     and a refresh at a pose that has turned away from the frame ends the track; at the true pose both go on."""
     img, T = clip[0]
     cam = Camera(K_SYN, 640, 480)
-    gray, lab = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), cv2.cvtColor(img, cv2.COLOR_RGB2LAB)
+    gray, lab = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), FrameEdges(img)
     turned = T.copy()
     turned[:3, :3] = T[:3, :3] @ cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(40.0)]))[0]
     name = cracker_model.name

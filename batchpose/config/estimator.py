@@ -57,6 +57,17 @@ class EstimatorConfig:
     probability that the pose is on the object (``verification`` in poses.parquet;
     :mod:`batchpose.method.score`). An ok pose scoring under this is low_confidence. 0: no score (the
     paper's pipelines)."""
+    verified_tracks: bool = True
+    """Where the mesh at a pose fails the texture match that lets a track start, survive a refresh or carry a
+    pose into the next frame (``track.min_match``), let it pass when the verification score does
+    (``min_verification``): a shiny or reflective surface (a metal lid) renders in colours the frame does not
+    show while its outline and gradients match. False, or ``min_verification`` 0: the texture match alone."""
+    track_verification: float = knob(0.8, ge=0, le=1)
+    """A track starts only from a pose whose verification score is at least this (where one is computed,
+    ``min_verification`` > 0, and the depth step does not judge the frame): a track carries its first pose
+    through up to ``track.chunk_frames`` frames, so it needs surer ground than one reported pose. 0.8 is the
+    score above which 99 % of the poses were right on the frames the score was fitted on
+    (``benchmarks/verification.py``). 0: any ok pose starts one."""
     verify_min_match: float = knob(0.35, ge=-1, le=1)
     """See ``verify_below`` (the depth and plane searches keep what they find by the same threshold)."""
     planar_spread: float = knob(0.05, ge=0, lt=1)

@@ -26,7 +26,6 @@ import functools
 import time
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from batchpose.core.frames import Frame, decode_image
@@ -35,6 +34,7 @@ from batchpose.method.estimator import working_size
 from batchpose.method.features import to_gray
 from batchpose.method.objects import Objects
 from batchpose.method.records import confidence, pose_of, to_full_size
+from batchpose.method.score import FrameEdges
 from batchpose.method.track import Track, follow_all
 from batchpose.method.tracked import hiders, refresh, seed_track
 from batchpose.method.verify import looks_wrong
@@ -59,9 +59,9 @@ class View:
     others: dict[str, np.ndarray] = field(default_factory=dict)
 
     @functools.cached_property
-    def lab(self) -> np.ndarray:
-        """(H, W, 3) uint8 the frame in Lab (made on first use)."""
-        return cv2.cvtColor(self.rgb, cv2.COLOR_RGB2LAB)
+    def look(self) -> FrameEdges:
+        """The frame as the checks see it (its Lab image, its edges; made on first use)."""
+        return FrameEdges(self.rgb)
 
 
 def view_of(frame: Frame, others: dict[str, np.ndarray], max_side_px: int) -> View:
@@ -99,7 +99,7 @@ def carry(objects: Objects, name: str, views: list[View], start: PoseRecord, max
     t0 = time.perf_counter()
     first = views[0]
     hidden = _hidden(objects, name, pose_of(start), first)
-    lab = first.lab if objects.conf.track.min_match > 0 else None
+    lab = first.look if objects.conf.track.min_match > 0 else None
     track = seed_track(objects, name, first.gray, start, first.frame.camera, hidden, lab)
     if track is None:
         why = "too few corners, or the mesh does not look like the frame there"
@@ -134,7 +134,7 @@ def _step(
         return None, None, "track lost (too few points followed)"
     t0 = time.perf_counter()
     hidden = _hidden(objects, name, res[0].track.cam_from_model, view)
-    moved = refresh(objects, name, view.gray, res[0], cam, hidden, view.lab if conf.track.min_match > 0 else None)
+    moved = refresh(objects, name, view.gray, res[0], cam, hidden, view.look if conf.track.min_match > 0 else None)
     if moved is None:
         return None, None, "the mesh at the followed pose does not look like the frame, or too few corners there"
     c = min(track.confidence, confidence(moved.n_inliers, moved.median_residual_px, conf))
@@ -175,7 +175,7 @@ def _weak(objects: Objects, rec: PoseRecord, view: View) -> str | None:
         return None
     cam = view.frame.camera
     shown = {n: objects.render(n, T, cam) for n, T in view.others.items() if objects.can_render(n)}
-    return looks_wrong(objects, rec, objects.render(rec.obj_name, pose_of(rec), cam), shown, view.lab)
+    return looks_wrong(objects, rec, objects.render(rec.obj_name, pose_of(rec), cam), shown, view.look.lab)
 
 
 def _hidden(objects: Objects, name: str, pose: np.ndarray, view: View) -> list:

@@ -22,6 +22,7 @@ poses are not scored (the tracker checks them frame to frame) and hold NaN.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -71,17 +72,24 @@ class Comparison:
 
 
 class FrameEdges:
-    """The frame's edges by orientation, spread (one bit per orientation bin), made once per frame."""
+    """The frame as the comparisons see it, made once per frame: its gray and Lab images, and its edges by
+    orientation, spread (one bit per orientation bin; made on first use, as a texture match alone needs
+    only the Lab image)."""
 
     def __init__(self, rgb: np.ndarray) -> None:
         self.gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
         self.lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
+
+    @functools.cached_property
+    def spread(self) -> np.ndarray:
+        """(H, W) uint8: bit i set where a frame edge of orientation bin i lies within :data:`SPREAD_PX`."""
         bins, strong = orientations(self.gray, EDGE_STRENGTH)
         bits = np.where(strong, np.left_shift(1, bins), 0).astype(np.uint8)
         kernel = np.ones((2 * SPREAD_PX + 1, 2 * SPREAD_PX + 1), np.uint8)
-        self.spread = np.zeros_like(bits)
+        spread = np.zeros_like(bits)
         for i in range(N_ORIENTATIONS):
-            self.spread |= cv2.dilate((bits >> i) & 1, kernel) << i
+            spread |= cv2.dilate((bits >> i) & 1, kernel) << i
+        return spread
 
     def met(self, ys: np.ndarray, xs: np.ndarray, bins: np.ndarray, dy: int = 0, dx: int = 0) -> float:
         """The share of outline pixels (ys, xs) with orientation ``bins`` that meet a frame edge of about that
@@ -145,8 +153,9 @@ def verify_poses(
     checked: dict[int, np.ndarray] | None = None,
 ) -> None:
     """``min_verification``: score every untracked ok pose (and the low-confidence ones, for the report's
-    curve); an ok pose scoring under the threshold becomes low_confidence and leaves the sequence's tracks
-    (not in a frame the depth step checks: ``depth.enabled`` and a depth image).
+    curve); an ok pose scoring under the threshold becomes low_confidence and leaves the sequence's tracks,
+    one under ``track_verification`` starts no track (neither in a frame the depth step checks:
+    ``depth.enabled`` and a depth image).
     Run after the estimate and again after the searches: ``checked`` (id(record) -> the pose it was scored
     at, kept between the two) skips the poses scored already."""
     checked = {} if checked is None else checked
@@ -170,6 +179,8 @@ def verify_poses(
         rec.verification = c.score() if c is not None else 0.0
         checked[id(rec)] = pose_of(rec)
         rec.timings["verify"] = rec.timings.get("verify", 0.0) + each
+        if rec.ok and rec.verification < conf.track_verification and not judged_by_depth:
+            sequence.tracks.pop(rec.obj_name, None)  # a fresh pose's track is the one it started
         if rec.ok and rec.verification < conf.min_verification and not judged_by_depth:
             rec.status = "low_confidence"
             what = (

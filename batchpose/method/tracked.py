@@ -28,8 +28,9 @@ from batchpose.method.appearance import texture_match
 from batchpose.method.features import to_gray
 from batchpose.method.objects import Objects
 from batchpose.method.records import Replaced, confidence, pose_of
+from batchpose.method.score import FrameEdges, compare
 from batchpose.method.sequence import PreviousFrame, Sequence, Stamp, follows
-from batchpose.method.shot import LazyLab, check_image
+from batchpose.method.shot import check_image
 from batchpose.method.single import estimate_image
 from batchpose.method.track import Track, anchor_to_render, covered, follow_all, occluders, seed, view_turn_deg
 from batchpose.method.verify import VERIFY_MIN_PX
@@ -49,10 +50,14 @@ def estimate_tracked(
     gray = to_gray(rgb)
     t_gray = time.perf_counter() - t0
     before = _hand_over(sequence, frame, tc.max_gap_s)
-    lab = LazyLab(rgb, gray)  # the frame in Lab, made once, for the first check (``track.min_match``)
+    look: list[FrameEdges] = []  # the frame as the checks see it (``track.min_match``), made on first use
 
-    def frame_lab() -> np.ndarray | None:
-        return lab.get() if tc.min_match > 0 else None
+    def frame_lab() -> FrameEdges | None:
+        if tc.min_match <= 0:
+            return None
+        if not look:
+            look.append(FrameEdges(rgb))
+        return look[0]
 
     out = _follow_tracks(objects, gray, frame, obj_names, before, sequence, frame_lab, t_gray)
     fresh = _estimate_rest(objects, rgb, frame, obj_names, before, out, replaced)
@@ -216,7 +221,8 @@ def seed_track(
     objects: Objects, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera, hidden=(), lab=None
 ) -> Track | None:
     """A new track from a confident full estimate (None when the object shows too few corners, or, given
-    the frame's Lab image ``lab``, when the mesh at that pose does not look like the frame:
+    the frame ``lab`` (:class:`~batchpose.method.score.FrameEdges`), when the mesh at that pose does not look
+    like the frame:
     :func:`looks_alike`); no corners where ``hidden`` (:func:`hiders`) puts something in front of it."""
     if objects.models.get(name) is None:
         return None
@@ -230,22 +236,28 @@ def seed_track(
     return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy(), key_pose=T.copy())
 
 
-def looks_alike(objects: Objects, lab: np.ndarray, rgb: np.ndarray, depth: np.ndarray, hidden=()) -> bool:
-    """``track.min_match``: the mesh rendered at a pose (``rgb``, ``depth``) looks like the frame (``lab``)
-    over its silhouette, less what ``hidden`` puts in front of it; True when too little of it shows to
-    judge."""
-    min_match = objects.conf.track.min_match
-    if min_match <= 0:
+def looks_alike(objects: Objects, frame: FrameEdges, rgb: np.ndarray, depth: np.ndarray, hidden=()) -> bool:
+    """``track.min_match``: the mesh rendered at a pose (``rgb``, ``depth``) looks like the ``frame`` over its
+    silhouette, less what ``hidden`` puts in front of it: its colours match (texture match), or, with
+    ``verified_tracks``, its verification score passes (:func:`~batchpose.method.score.compare`). True when
+    too little of it shows to judge."""
+    conf = objects.conf
+    if conf.track.min_match <= 0:
         return True
     seen = depth > 0
     for occ in hidden:
         seen &= ~(occ.mask & (depth > occ.near_m))
-    return seen.sum() < VERIFY_MIN_PX or texture_match(lab[seen], rgb[seen]) >= min_match
+    if seen.sum() < VERIFY_MIN_PX or texture_match(frame.lab[seen], rgb[seen]) >= conf.track.min_match:
+        return True
+    if not (conf.verified_tracks and conf.min_verification > 0):
+        return False
+    c = compare(frame, rgb, depth, seen)
+    return c is not None and c.score() >= conf.min_verification
 
 
 def refresh(objects: Objects, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), lab=None):
     """A new keyframe at the tracked pose, checked against the mesh: the mesh rendered there must look like
-    the frame (:func:`looks_alike`, given the frame's Lab image ``lab``), then the points are pulled onto
+    the frame (:func:`looks_alike`, given the frame ``lab``), then the points are pulled onto
     it (:func:`batchpose.method.track.anchor_to_render`) and corners are seeded afresh at the pulled pose. None
     when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
     rgb, depth = objects.render(name, res.track.cam_from_model, camera)
