@@ -1,6 +1,6 @@
 """Accuracy on objects ycbv_dev does not have: every YCB mesh rendered into real YCB-Video frames.
 
-ycbv_dev holds real frames of 5 objects; ``../shared/data/ycb_models`` holds 12. This script renders each
+ycbv_dev holds real frames of 7 objects; ``../shared/data/ycb_models`` holds 12. This script renders each
 of them (lit, not the templates' flat shading) at random poses a YCB-Video camera would see — distance
 0.6–1.2 m, any view direction, roll ±30°, anywhere in the image — into real ycbv_dev frames that do not
 show that object, with a per-frame colour gain, defocus blur, sensor noise, JPEG compression and, in
