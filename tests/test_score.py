@@ -101,3 +101,23 @@ def test_verify_poses_rejects_an_ok_pose_that_does_not_look_like_the_frame(demo)
         Objects(depth_on, {}, models=objects.models, renderer=objects.renderer), frame, rgb, [aside], Sequence()
     )
     assert aside.ok and aside.verification < 0.5
+
+
+def test_a_pose_under_track_verification_stays_ok_but_starts_no_track(demo):
+    """``track_verification``: the true cracker-box pose (scoring ~0.93) keeps the track it started at the
+    default 0.8; with the bar at 0.99 it stays ok, its score recorded, but its track is dropped, so the next
+    frame estimates the box afresh instead of following it."""
+    frame, rgb, truth, objects = demo
+
+    def after(bar: float) -> tuple[PoseRecord, Sequence]:
+        rec = PoseRecord(frame.frame_id, CRACKER, "ok", cam_from_model=truth.copy(), confidence=0.9)
+        sequence = Sequence()
+        sequence.tracks[CRACKER] = Track(np.zeros((0, 2)), np.zeros((0, 3)), rec.cam_from_model, 0, 0.9)
+        conf = dataclasses.replace(objects.conf, track_verification=bar)
+        verify_poses(Objects(conf, {}, models=objects.models, renderer=objects.renderer), frame, rgb, [rec], sequence)
+        return rec, sequence
+
+    rec, sequence = after(0.8)
+    assert rec.ok and 0.8 <= rec.verification < 0.99 and CRACKER in sequence.tracks
+    rec, sequence = after(0.99)
+    assert rec.ok and rec.reason == "" and CRACKER not in sequence.tracks
