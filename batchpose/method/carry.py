@@ -99,8 +99,8 @@ def carry(objects: Objects, name: str, views: list[View], start: PoseRecord, max
     t0 = time.perf_counter()
     first = views[0]
     hidden = _hidden(objects, name, pose_of(start), first)
-    lab = first.look if objects.conf.track.min_match > 0 else None
-    track = seed_track(objects, name, first.gray, start, first.frame.camera, hidden, lab)
+    look = first.look if objects.conf.track.min_match > 0 else None
+    track = seed_track(objects, name, first.gray, start, first.frame.camera, hidden, look)
     if track is None:
         why = "too few corners, or the mesh does not look like the frame there"
         return Carried([], f"no track could start at {first.frame.frame_id}'s pose ({why})")

@@ -179,9 +179,11 @@ def verify_poses(
         rec.verification = c.score() if c is not None else 0.0
         checked[id(rec)] = pose_of(rec)
         rec.timings["verify"] = rec.timings.get("verify", 0.0) + each
-        if rec.ok and rec.verification < conf.track_verification and not judged_by_depth:
+        if not rec.ok or judged_by_depth:
+            continue
+        if rec.verification < conf.track_verification:
             sequence.tracks.pop(rec.obj_name, None)  # a fresh pose's track is the one it started
-        if rec.ok and rec.verification < conf.min_verification and not judged_by_depth:
+        if rec.verification < conf.min_verification:
             rec.status = "low_confidence"
             what = (
                 f"outline {c.outline:.2f}, gradient {c.gradient:.2f}, texture {c.texture:.2f}"

@@ -50,19 +50,18 @@ def estimate_tracked(
     gray = to_gray(rgb)
     t_gray = time.perf_counter() - t0
     before = _hand_over(sequence, frame, tc.max_gap_s)
-    look: list[FrameEdges] = []  # the frame as the checks see it (``track.min_match``), made on first use
+    look: FrameEdges | None = None  # the frame as the checks see it (``track.min_match``), made on first use
 
-    def frame_lab() -> FrameEdges | None:
-        if tc.min_match <= 0:
-            return None
-        if not look:
-            look.append(FrameEdges(rgb))
-        return look[0]
+    def frame_look() -> FrameEdges | None:
+        nonlocal look
+        if tc.min_match > 0 and look is None:
+            look = FrameEdges(rgb)
+        return look
 
-    out = _follow_tracks(objects, gray, frame, obj_names, before, sequence, frame_lab, t_gray)
+    out = _follow_tracks(objects, gray, frame, obj_names, before, sequence, frame_look, t_gray)
     fresh = _estimate_rest(objects, rgb, frame, obj_names, before, out, replaced)
     _remember(objects, obj_names, out, before, sequence)
-    _seed_tracks(objects, gray, camera, obj_names, out, fresh, sequence, frame_lab)
+    _seed_tracks(objects, gray, camera, obj_names, out, fresh, sequence, frame_look)
     sequence.previous = PreviousFrame(Stamp.of(frame), gray, camera.dist)
     return [out[n] for n in obj_names]
 
@@ -92,7 +91,7 @@ def _remember(objects: Objects, obj_names: list[str], out: dict[str, PoseRecord]
 
 
 def _follow_tracks(
-    objects: Objects, gray, frame: Frame, obj_names: list[str], before: Sequence, sequence: Sequence, frame_lab, t_gray
+    objects: Objects, gray, frame: Frame, obj_names: list[str], before: Sequence, sequence: Sequence, frame_look, t_gray
 ) -> dict[str, PoseRecord]:
     """Follow ``before``'s tracks of ``obj_names`` into this frame (``gray``): a tracked record of each one
     followed, its moved track in ``sequence``."""
@@ -114,7 +113,7 @@ def _follow_tracks(
         if res is None:
             log.debug("%s: track of %s lost, estimating afresh", frame.frame_id, name)
             continue
-        res, t_refresh = _keep_up(objects, name, gray, res, camera, hidden[k] if hidden else (), frame_lab)
+        res, t_refresh = _keep_up(objects, name, gray, res, camera, hidden[k] if hidden else (), frame_look)
         if res is None:
             log.debug("%s: track of %s no longer matches the mesh, estimating afresh", frame.frame_id, name)
             continue
@@ -138,7 +137,7 @@ def _follow_tracks(
     return out
 
 
-def _keep_up(objects: Objects, name: str, gray, res, camera: Camera, hidden, frame_lab):
+def _keep_up(objects: Objects, name: str, gray, res, camera: Camera, hidden, frame_look):
     """A followed track pulled onto the render (every ``track.render_every`` frames) and refreshed when due
     (``track.refresh_every`` frames old, thinned below ``reseed_fraction``, or turned ``refresh_turn_deg``):
     (the track result, None when the refresh finds the mesh no longer there; seconds the refresh took)."""
@@ -154,7 +153,7 @@ def _keep_up(objects: Objects, name: str, gray, res, camera: Camera, hidden, fra
     if not (tc.refresh_every and (old_age >= tc.refresh_every or thinning or turned)):
         return res, 0.0
     t1 = time.perf_counter()
-    res = refresh(objects, name, gray, res, camera, hidden, frame_lab())
+    res = refresh(objects, name, gray, res, camera, hidden, frame_look())
     return res, time.perf_counter() - t1
 
 
@@ -197,7 +196,7 @@ def _estimate_rest(
 
 
 def _seed_tracks(
-    objects: Objects, gray, camera: Camera, obj_names, out: dict, fresh: list, sequence: Sequence, frame_lab
+    objects: Objects, gray, camera: Camera, obj_names, out: dict, fresh: list, sequence: Sequence, frame_look
 ):
     """Start a track in ``sequence`` from each fresh pose confident enough (``track.min_confidence``); no
     corners where an object found in this frame is in front of it."""
@@ -211,24 +210,24 @@ def _seed_tracks(
     for rec in seeds:
         t0 = time.perf_counter() - t_hidden
         in_front = hidden_now[placed.index(rec.obj_name)] if hidden_now else ()
-        tr = seed_track(objects, rec.obj_name, gray, rec, camera, in_front, frame_lab())
+        tr = seed_track(objects, rec.obj_name, gray, rec, camera, in_front, frame_look())
         rec.timings["seed"] = time.perf_counter() - t0
         if tr is not None:
             sequence.tracks[rec.obj_name] = tr
 
 
 def seed_track(
-    objects: Objects, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera, hidden=(), lab=None
+    objects: Objects, name: str, gray: np.ndarray, rec: PoseRecord, camera: Camera, hidden=(), look=None
 ) -> Track | None:
     """A new track from a confident full estimate (None when the object shows too few corners, or, given
-    the frame ``lab`` (:class:`~batchpose.method.score.FrameEdges`), when the mesh at that pose does not look
+    the frame ``look`` (:class:`~batchpose.method.score.FrameEdges`), when the mesh at that pose does not look
     like the frame:
     :func:`looks_alike`); no corners where ``hidden`` (:func:`hiders`) puts something in front of it."""
     if objects.models.get(name) is None:
         return None
     T = pose_of(rec)
     rgb, depth = objects.render(name, T, camera)
-    if lab is not None and not looks_alike(objects, lab, rgb, depth, hidden):
+    if look is not None and not looks_alike(objects, look, rgb, depth, hidden):
         return None
     xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, objects.conf.track, hidden)
     if len(xy) < objects.conf.track.min_points:
@@ -255,13 +254,13 @@ def looks_alike(objects: Objects, frame: FrameEdges, rgb: np.ndarray, depth: np.
     return c is not None and c.score() >= conf.min_verification
 
 
-def refresh(objects: Objects, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), lab=None):
+def refresh(objects: Objects, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), look=None):
     """A new keyframe at the tracked pose, checked against the mesh: the mesh rendered there must look like
-    the frame (:func:`looks_alike`, given the frame ``lab``), then the points are pulled onto
+    the frame (:func:`looks_alike`, given the frame ``look``), then the points are pulled onto
     it (:func:`batchpose.method.track.anchor_to_render`) and corners are seeded afresh at the pulled pose. None
     when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
     rgb, depth = objects.render(name, res.track.cam_from_model, camera)
-    if lab is not None and not looks_alike(objects, lab, rgb, depth, hidden):
+    if look is not None and not looks_alike(objects, look, rgb, depth, hidden):
         return None
     anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, objects.conf.track)
     if anchored is None:
