@@ -17,7 +17,7 @@ from batchpose.core.poses import PoseRecord
 from batchpose.io.mesh import load_mesh
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.on_plane import use_plane
-from batchpose.method.plane import resting_faces, stable_faces, support_plane
+from batchpose.method.plane import one_object_plane, resting_faces, stable_faces, support_plane
 from batchpose.method.render import get_renderer
 from batchpose.method.sequence import Sequence
 from batchpose.method.verify import verify_weak
@@ -58,6 +58,13 @@ def test_support_plane_of_objects_resting_on_a_table(cracker_model):
     lifted[:3, 3] += 0.1 * table_normal  # held 10 cm above the table: no common plane
     assert support_plane({"a": (A, _hull(cracker_model)), "b": (lifted, _hull(gelatin))}, PlaneConfig()) is None
     assert support_plane({"a": (A, _hull(cracker_model))}, PlaneConfig()) is None  # one object
+    # A third object on a 10 cm stand: the other two's table, unless every found object must rest on it.
+    C = _on_table(gelatin.mesh, 0.05, 0.2, 10)
+    C[:3, 3] += 0.1 * table_normal
+    three = {"a": (A, _hull(cracker_model)), "b": (B, _hull(gelatin)), "c": (C, _hull(gelatin))}
+    plane = support_plane(three, PlaneConfig())
+    assert plane is not None and plane.objects == ("a", "b") and _angle_deg(plane.normal, table_normal) < 0.5
+    assert support_plane(three, PlaneConfig(all_objects=True)) is None
 
 
 def test_support_plane_is_one_the_objects_rest_on_with_a_face(cracker_model):
@@ -78,6 +85,34 @@ def test_support_plane_is_one_the_objects_rest_on_with_a_face(cracker_model):
     B_flat = _on_table(gelatin.mesh, 0.1, -0.02, 0)
     flat = support_plane({"a": found["a"], "b": (B_flat, _hull(gelatin))}, PlaneConfig(), stable)
     assert flat is not None and _angle_deg(flat.normal, CAM_FROM_WORLD[:3, 2]) < 0.5
+
+
+def test_one_object_rests_on_its_face_nearest_the_image_up(cracker_model):
+    """One found object: the surface is its resting face nearest the image's up direction, when that is clear
+    (a camera looking 30 degrees down, rolled a little or not); looking 60 degrees down, a side face is nearly
+    as near, and straight down the image's up says nothing: no plane."""
+    faces = resting_faces(stable_faces(cracker_model.mesh), PlaneConfig().min_stable)
+    hull = _hull(cracker_model)
+
+    def seen_from(eye: np.ndarray, up=(0.0, 0.0, -1.0)) -> tuple[np.ndarray, np.ndarray]:
+        """(cam_from_world, cam_from_model) of a camera at ``eye``; look_at's ``up`` is the image's down."""
+        cam_from_world = look_at(eye, np.zeros(3), np.asarray(up))
+        return cam_from_world, cam_from_world @ np.linalg.inv(CAM_FROM_WORLD) @ _on_table(cracker_model.mesh, 0, 0, 20)
+
+    cam, T = seen_from(np.array([0.0, -0.9, 0.52]))  # 30 degrees down
+    plane = one_object_plane("a", T, hull, faces, PlaneConfig())
+    assert plane is not None and _angle_deg(plane.normal, cam[:3, 2]) < 0.5 and plane.objects == ("a",)
+    assert plane.offset == pytest.approx(cam[:3, 2] @ cam[:3, 3], abs=1e-3)
+    assert one_object_plane("a", T, hull, faces, PlaneConfig(one_object_tilt_deg=0)) is None  # off
+    assert one_object_plane("a", T, hull, faces, PlaneConfig(one_object_tilt_deg=25)) is None  # beyond the tilt
+    assert one_object_plane("a", *seen_from(np.array([0.0, -0.3, 0.52]))[1:], hull, faces, PlaneConfig()) is None
+    assert (
+        one_object_plane("a", *seen_from(np.array([0.0, 0.0, 0.6]), (0, -1, 0))[1:], hull, faces, PlaneConfig()) is None
+    )
+    rolled = np.eye(4)
+    rolled[:3, :3] = cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(15.0)]))[0]  # a hand-held camera's roll
+    plane = one_object_plane("a", rolled @ T, hull, faces, PlaneConfig())
+    assert plane is not None and _angle_deg(plane.normal, rolled[:3, :3] @ cam[:3, 2]) < 0.5
 
 
 def test_resting_faces_of_a_box():

@@ -541,6 +541,11 @@ class PlaneConfig:
     marker on the table in 4 of 44 frames without one. Off: an absent object costs only the presence check."""
     min_objects: int = knob(2, ge=2)
     """Fewest confidently found objects that define a support plane ..."""
+    all_objects: bool = False
+    """... and True: every one found must rest on it (False: the most that rest on one plane do)."""
+    one_object_tilt_deg: float = knob(45.0, ge=0, lt=90)
+    """... or one, resting on its face whose upward normal is nearest the image's up direction, if within this
+    angle and clearly nearest (:func:`batchpose.method.plane.one_object_plane`; 0: two objects needed)."""
     min_confidence: float = knob(0.5, ge=0, le=1)
     """... each at least this confident ..."""
     max_spread_m: float = knob(0.03, gt=0)
@@ -573,17 +578,14 @@ class PlaneConfig:
     a can on the mustard bottle), 0.3-1.0."""
     edge_weight: float = knob(0.5, ge=0)
     """Weight of the edge score (:attr:`batchpose.method.plane.Placed.edge`: how closely the frame's edges follow
-    the placed silhouette's outline) in the refinement's score. 0: edges are not looked at while refining.
-    It also aligns wrong placements with whatever edges are near: alone it took the poses of objects the
-    frames do not show from 2 to 7 (tabletop seeds 0-1), with ``min_edge`` 0.4 from 4 to 10 (seeds 0-5);
-    hence ``min_edge``'s 0.6."""
+    the placed silhouette's outline) in the refinement's score (0: not looked at while refining). It also
+    aligns wrong placements with edges near them, hence ``min_edge``'s 0.6."""
     min_edge: float = knob(0.6, ge=0, le=1)
     """A placement is kept only if its edge score is at least this (0: not checked; nor where the frame has
     no edges near the placement at all). At their true poses the tabletop's markers and bleach cleansers have
     0.67-0.97 of their outline within 1.5 px of an edge; with ``edge_weight`` 0.5 the
     placements of absent objects that passed every other check scored 0.40-0.62 (tabletop seeds 0-2; this
-    value was chosen from them). Tabletop seeds 0-3 against 0 / 0: right 20 -> 23, wrong 2 -> 1, absent
-    objects placed 2 -> 1 (reports/ACCURACY.md at 8fba8e3, "Session 27")."""
+    value was chosen from them). Tabletop seeds 0-3 against 0: right 20 -> 23, wrong 2 -> 1, absent 2 -> 1."""
     edge_confirms: float = knob(0.75, ge=0, le=1)
     """A finely refined placement that fails one of the two colour checks (``min_colour``, ``min_contrast``)
     is kept if its edge score is at least this: a pale bottle on a white table has the table's colours, a thin
@@ -594,7 +596,5 @@ class PlaneConfig:
     reface: bool = True
     """Also refine, at each coarsely refined start's place, the two best of the object's other resting faces
     with its long axis kept (a bottle lying on its other side, a box on its back): the silhouette barely
-    differs, the texture does. Tabletop seeds 1-4, the plane search replayed with and without it: +0.71,
-    0.00, +0.84 and -0.10 pairs of credit (a power drill and a bleach cleanser found); ycbv_dev's mustard
-    bottle moves 0.3-2.6 mm. It doubles the search's time (tabletop: 2.9 -> 5.1 s a search;
-    reports/ACCURACY.md at 8fba8e3, "Session 30"). False: the coarse search's faces only."""
+    differs, the texture does. Tabletop seeds 1-4 with and without it: +0.71, 0.00, +0.84 and -0.10 pairs of
+    credit. It doubles the search's time (2.9 -> 5.1 s). False: the coarse search's faces only."""

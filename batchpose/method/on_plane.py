@@ -11,7 +11,7 @@ import numpy as np
 from batchpose.core.frames import Camera, Frame
 from batchpose.core.poses import PoseRecord
 from batchpose.method.objects import Objects
-from batchpose.method.plane import Placed, Plane, search_plane, support_plane
+from batchpose.method.plane import Placed, Plane, one_object_plane, resting_faces, search_plane, support_plane
 from batchpose.method.records import NOT_FOUND, SEARCHED, pose_of
 from batchpose.method.sequence import SearchPose, Sequence, Stamp, previous_pose, search_due
 
@@ -49,7 +49,11 @@ def use_plane(objects: Objects, frame: Frame, rgb: np.ndarray, records: list[Pos
         for r in records
         if r.ok and r.confidence >= pc.min_confidence and r.obj_name in objects.models
     }
-    plane = support_plane(found, pc, {name: objects.stable_faces(name)[0] for name in found})
+    if len(found) == 1:
+        ((name, (T, hull)),) = found.items()
+        plane = one_object_plane(name, T, hull, resting_faces(objects.stable_faces(name), pc.min_stable), pc)
+    else:
+        plane = support_plane(found, pc, {name: objects.stable_faces(name)[0] for name in found})
     if plane is None:
         for rec in lost:
             sequence.placed.pop(rec.obj_name, None)

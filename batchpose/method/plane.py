@@ -101,6 +101,9 @@ EDGE_CLEAR_PX = 2
 #: An edge score needs at least this many outline pixels left (fewer: 0), and this many frame edge pixels in
 #: the judged square (fewer: NaN, the frame says nothing there).
 EDGE_MIN_PIXELS = 10
+#: One object's surface (:func:`one_object_plane`) is the resting face nearest the image's up direction only
+#: when every other is at least this much farther (degrees; resting faces are merged within 15).
+MARGIN_DEG = 15.0
 #: With ``plane.reface``, the best this many of a start's other resting faces are refined.
 REFACED = 2
 #: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
@@ -138,7 +141,8 @@ def support_plane(
     conf: PlaneConfig,
     stable: dict[str, np.ndarray] | None = None,
 ) -> Plane | None:
-    """The plane the found objects rest on, or None when they do not rest on one.
+    """The plane the most found objects rest on (at least ``min_objects``; with ``plane.all_objects``, all of
+    them), or None when no such group rests on one.
 
     Args:
         found: name -> (cam_from_model, hull) for each confidently found object, ``hull`` a
@@ -147,27 +151,82 @@ def support_plane(
             (:func:`stable_faces`' first): a plane is one each object rests on with one of them (within
             STABLE_DEG) — two objects reach down equally to many planes, most of them touching a corner
             or an edge.
+
+    Each found object's largest hull faces, turned downwards, propose a normal; along each, the group is the
+    most objects that rest on it whose lowest points are within ``max_spread_m`` of one another, with the
+    camera above them. The normal with the largest group wins, the least spread among equals. One object
+    standing on another, or a pose off in distance, leaves the others' surface to them.
     """
     if len(found) < conf.min_objects:
         return None
-    points = {n: hull.vertices @ T[:3, :3].T + T[:3, 3] for n, (T, hull) in found.items()}
+    names = list(found)
     down_faces = []
     for T, hull in found.values():
         biggest = np.argsort(-hull.area_faces)[: conf.plane_candidates]
         down_faces.append(-(hull.face_normals[biggest] @ T[:3, :3].T))  # a resting face points down
     normals = np.concatenate(down_faces)
-    lows = np.stack([(p @ normals.T).min(axis=0) for p in points.values()])  # (objects, candidates)
-    offset = lows.mean(axis=0)
-    spread = lows.max(axis=0) - lows.min(axis=0)
-    spread[offset >= 0] = np.inf  # the camera (the origin) must be above the plane
-    for name, faces in (stable or {}).items():
-        if name in found:
-            down = faces @ found[name][0][:3, :3].T  # the faces' normals in the camera; resting, one points down
-            spread[(down @ -normals.T).max(axis=0) < np.cos(np.deg2rad(STABLE_DEG))] = np.inf
-    best = int(np.argmin(spread))
-    if not spread[best] <= conf.max_spread_m:
+    lows = np.stack([((h.vertices @ T[:3, :3].T + T[:3, 3]) @ normals.T).min(axis=0) for T, h in found.values()])
+    rests = np.ones(lows.shape, bool)  # (objects, candidates)
+    for i, name in enumerate(names):
+        if stable is not None and name in stable:
+            down = stable[name] @ found[name][0][:3, :3].T  # the faces' normals in the camera; one points down
+            rests[i] = (down @ -normals.T).max(axis=0) >= np.cos(np.deg2rad(STABLE_DEG))
+    least = len(found) if conf.all_objects else conf.min_objects
+    best: tuple[int, float, int, np.ndarray] | None = None
+    for c in range(len(normals)):
+        group, spread = _lowest_group(lows[:, c], rests[:, c], conf.max_spread_m)
+        if len(group) < least or lows[group, c].mean() >= 0:  # the camera (the origin) must be above it
+            continue
+        if best is None or (len(group), -spread) > (best[0], -best[1]):
+            best = (len(group), spread, c, group)
+    if best is None:
         return None
-    return Plane(normals[best], float(offset[best]), float(spread[best]), tuple(found))
+    _, spread, c, group = best
+    return Plane(normals[c], float(lows[group, c].mean()), float(spread), tuple(names[i] for i in group))
+
+
+def _lowest_group(lows: np.ndarray, rests: np.ndarray, max_spread: float) -> tuple[np.ndarray, float]:
+    """Of the objects that ``rests``, the most whose ``lows`` are within ``max_spread`` of one another, the
+    least spread among equals: (their indices, ascending, and their spread)."""
+    idx = np.flatnonzero(rests)
+    if not len(idx):
+        return idx, 0.0
+    order = idx[np.argsort(lows[idx])]
+    values = lows[order]
+    best = (1, 0.0, 0, 1)
+    for i in range(len(order)):
+        j = int(np.searchsorted(values, values[i] + max_spread, side="right"))
+        size, spread = j - i, float(values[j - 1] - values[i])
+        if (size, -spread) > (best[0], -best[1]):
+            best = (size, spread, i, j)
+    return np.sort(order[best[2] : best[3]]), best[1]
+
+
+def one_object_plane(name: str, T: np.ndarray, hull: trimesh.Trimesh, faces: list[np.ndarray], conf: PlaneConfig):
+    """The plane one found object rests on (``plane.one_object_tilt_deg``), or None.
+
+    With two objects, the height they share picks the surface; one object could rest on any of its resting
+    faces. The camera's roll and pitch pick it instead: of ``faces`` (:func:`resting_faces`: the model-frame
+    outward normals of the faces it rests on, rotated into the camera by ``T``), the surface is the one whose
+    upward normal is nearest the image's up direction (camera -y): within ``one_object_tilt_deg`` of it, every
+    other face at least :data:`MARGIN_DEG` farther, and the camera above it, looking down at the object by at
+    least that angle. Otherwise (a box seen along its
+    diagonal or from straight above, a rolled camera) None: the search does not guess.
+    """
+    if not conf.one_object_tilt_deg or not faces:
+        return None
+    ups = -(np.asarray(faces, float) @ T[:3, :3].T)  # camera frame, pointing away from the surface
+    tilt = np.degrees(np.arccos(np.clip(-ups[:, 1] / np.linalg.norm(ups, axis=1), -1.0, 1.0)))
+    order = np.argsort(tilt)
+    if tilt[order[0]] > conf.one_object_tilt_deg or (len(order) > 1 and tilt[order[1]] < tilt[order[0]] + MARGIN_DEG):
+        return None
+    normal = ups[order[0]] / np.linalg.norm(ups[order[0]])
+    offset = float(((hull.vertices @ T[:3, :3].T + T[:3, 3]) @ normal).min())
+    centre = T[:3, :3] @ hull.centroid + T[:3, 3]
+    # The camera must look down at the object (from straight above, a box lying flat would otherwise stand on
+    # the side face nearest the image's up, seen edge-on from its own height).
+    looks_down = -offset - (normal @ centre - offset) >= np.sin(np.deg2rad(MARGIN_DEG)) * np.linalg.norm(centre)
+    return Plane(normal, offset, 0.0, (name,)) if offset < 0 and looks_down else None
 
 
 def stable_faces(mesh) -> tuple[np.ndarray, np.ndarray]:
@@ -322,6 +381,7 @@ def search_plane(
         return cues == 1 and conf.edge_confirms > 0 and (not final or p.edge >= conf.edge_confirms)
 
     if previous is not None:
+        previous = _onto(previous, plane, target)
         judge, floor = judge_around([previous])
         score, placed = _refine(previous, plane, target, judge, FINE_STEPS)
         if passes(score, placed, floor):
@@ -561,6 +621,14 @@ def _kernels(R: np.ndarray, target: Target, Ks: np.ndarray, z: float) -> tuple[n
     width = max(1, int(round(COARSE_RING * extent)))
     ring = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * width + 1, 2 * width + 1))) - mask
     return mask, ring * (mask.sum() / max(float(ring.sum()), 1.0)), (r, r)
+
+
+def _onto(T: np.ndarray, plane: Plane, target: Target) -> np.ndarray:
+    """The pose moved along the plane's normal until the object's lowest point is on the plane (a previous
+    frame's placement on this frame's plane: the refinement only turns and slides along it)."""
+    out = T.copy()
+    out[:3, 3] += (plane.offset - ((target.hull @ T[:3, :3].T + T[:3, 3]) @ plane.normal).min()) * plane.normal
+    return out
 
 
 def _refine(start: np.ndarray, plane: Plane, target: Target, judge: _Judge, steps) -> tuple[float, Placed | None]:
