@@ -17,7 +17,8 @@ wrong focal length or mesh scale shows as one constant ratio). Printed per objec
    ADD < 0.1 d as it is, with the along-ray error removed, with only its per-sequence mean removed (what one
    external reference a sequence would pin: a depth frame, a known size) and with only its scatter removed
    (what averaging the frames of a static object could give);
-5. with two or more runs (e.g. the default and ``rgbd``): the along-ray error side by side on the pairs
+5. the camera's travel over each video (the parallax a static scene's frames hold);
+6. with two or more runs (e.g. the default and ``rgbd``): the along-ray error side by side on the pairs
    every run got right.
 
 Usage:
@@ -167,6 +168,23 @@ def sequence_terms(pairs: pd.DataFrame, run: RunData) -> pd.DataFrame:
             vals.append(add(r["R_est"], t, r["R_gt"], r["t_gt"], points[r["obj_name"]]))
         out[col] = vals
     return out
+
+
+def camera_travel(run: RunData) -> str:
+    """Per video: how far the camera moves over its frames (the largest distance between two of its positions,
+    taken in the ground-truth frame of the object seen in the most frames) against its distance to it."""
+    lines = []
+    gt = run.gt.assign(video=run.gt["frame_id"].map(video_of))
+    for video, g in gt.groupby("video"):
+        rows = g[g["obj_name"] == g["obj_name"].value_counts().index[0]]
+        if len(rows) < 2:
+            continue
+        centres = np.array([-R.T @ t for R, t in map(_rt, rows.to_dict("records"))])
+        travel = max(np.linalg.norm(centres - c, axis=1).max() for c in centres)
+        dist = np.median(np.linalg.norm(centres, axis=1))
+        pct = 100 * travel / dist
+        lines.append(f"  {video}: {len(rows)} frames, {1000 * travel:.0f} mm at {dist:.2f} m ({pct:.1f} %)")
+    return "\n".join(lines)
 
 
 def _silhouette_median(rendered: np.ndarray, sensor: np.ndarray, inside: np.ndarray) -> float:
@@ -398,6 +416,8 @@ def study(run_dir: Path, max_rot_deg: float, with_depth: bool) -> pd.DataFrame:
     print("the along-ray error over the sequence (mean, sd; median mm) and the sd SIFT's inliers predict")
     print(cause_table(pairs))
     print("\nADD < 0.1 d of the right poses\n" + pinning_table(pairs))
+    print("\nthe camera's travel over each video's frames (what a static object's frames can triangulate)")
+    print(camera_travel(run))
     wrong = every[every["rot_deg"] >= max_rot_deg]
     fails = every["add_m"] >= 0.1 * every["diameter_m"]
     rescued = fails & (every["add_no_along_m"] < 0.1 * every["diameter_m"])
