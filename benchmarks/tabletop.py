@@ -6,7 +6,7 @@ one of ycbv_dev's videos (``--video``: 1, video 0001, the master chef can, crack
 bottle on a table; 49, video 0049, whose sugar box lies 2-3 cm off the plane of its tuna and potted meat
 cans), finds the table from their ground-truth poses (the plane the most of them rest on), and stands each
 other YCB object on it: on one of its resting faces
-(:func:`batchpose.method.plane.resting_faces`, chosen uniformly), turned at random about the table's normal, at a
+(:func:`batchpose.method.support.resting_faces`, chosen uniformly), turned at random about the table's normal, at a
 random free place on the table in view (0.5-1.6 m away, where the depth image sees the table, clear
 of the real objects' footprints, at least half of it visible). The real objects in front hide it where
 the frame's depth image is nearer; then the frame gets heldout.py's colour gain, blur, noise and JPEG.
@@ -43,8 +43,8 @@ from batchpose.config import PlaneConfig  # noqa: E402
 from batchpose.core.frames import decode_depth, decode_image  # noqa: E402
 from batchpose.io.folders import YcbvFrameSource  # noqa: E402
 from batchpose.io.mesh import load_mesh  # noqa: E402
-from batchpose.method.plane import resting, resting_faces, stable_faces, support_plane  # noqa: E402
 from batchpose.method.render import get_renderer  # noqa: E402
+from batchpose.method.support import resting, resting_faces, stable_faces, support_plane  # noqa: E402
 from batchpose.report.metrics import vocap_auc  # noqa: E402
 
 ALL = (

@@ -17,9 +17,9 @@ from batchpose.core.poses import PoseRecord
 from batchpose.io.mesh import load_mesh
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.on_plane import use_plane
-from batchpose.method.plane import one_object_plane, resting_faces, stable_faces, support_plane
 from batchpose.method.render import get_renderer
 from batchpose.method.sequence import Sequence
+from batchpose.method.support import one_object_plane, resting_faces, stable_faces, support_plane
 from batchpose.method.verify import verify_weak
 from batchpose.method.views import look_at
 from tests.conftest import GELATIN, K_SYN
@@ -387,7 +387,7 @@ def _marker_on_table(x: float, y: float, turn_deg: float):
 
 def _table_plane():
     """The table (world z = 0) as the plane search's support plane."""
-    from batchpose.method.plane import Plane
+    from batchpose.method.support import Plane
 
     normal = CAM_FROM_WORLD[:3, 2]
     return Plane(normal, float(normal @ CAM_FROM_WORLD[:3, 3]), 0.0, ("a", "b"))

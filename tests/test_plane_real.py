@@ -16,8 +16,9 @@ from batchpose.core.frames import Camera, decode_image
 from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.mesh import load_mesh
 from batchpose.method.appearance import N_BINS, colour_bins
-from batchpose.method.plane import Target, one_object_plane, resting_faces, search_plane, stable_faces
+from batchpose.method.plane import Target, search_plane
 from batchpose.method.render import get_renderer
+from batchpose.method.support import one_object_plane, resting_faces, stable_faces
 from batchpose.method.views import fibonacci_directions, look_at
 from tests.conftest import SHARED_DATA
 

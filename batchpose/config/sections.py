@@ -545,7 +545,7 @@ class PlaneConfig:
     """... and True: every one found must rest on it (False: the most that rest on one plane do)."""
     one_object_tilt_deg: float = knob(45.0, ge=0, lt=90)
     """... or one, resting on its face whose upward normal is nearest the image's up direction, if within this
-    angle and clearly nearest (:func:`batchpose.method.plane.one_object_plane`; 0: two objects needed)."""
+    angle and clearly nearest (:func:`batchpose.method.support.one_object_plane`; 0: two objects needed)."""
     min_confidence: float = knob(0.5, ge=0, le=1)
     """... each at least this confident ..."""
     max_spread_m: float = knob(0.03, gt=0)

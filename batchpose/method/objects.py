@@ -19,8 +19,9 @@ from batchpose.method.correspondences import flann_index
 from batchpose.method.depth import Surface
 from batchpose.method.depth_search import Silhouettes
 from batchpose.method.features import make_sift, to_gray
-from batchpose.method.plane import Target, resting_faces, stable_faces
+from batchpose.method.plane import Target
 from batchpose.method.presence import JointIndex, joint_index
+from batchpose.method.support import resting_faces, stable_faces
 from batchpose.method.templates import TemplateLibrary
 from batchpose.method.weights import geom_weights, model_support, model_voxel_grid, support_to_weights
 
@@ -189,7 +190,7 @@ class Objects:
         return self._silhouettes[name]
 
     def stable_faces(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """The faces the object can rest on (:func:`batchpose.method.plane.stable_faces`)."""
+        """The faces the object can rest on (:func:`batchpose.method.support.stable_faces`)."""
         if name not in self._stable:
             self._stable[name] = stable_faces(self.models[name].mesh)
         return self._stable[name]

@@ -11,9 +11,10 @@ import numpy as np
 from batchpose.core.frames import Camera, Frame
 from batchpose.core.poses import PoseRecord
 from batchpose.method.objects import Objects
-from batchpose.method.plane import Placed, Plane, one_object_plane, resting_faces, search_plane, support_plane
+from batchpose.method.plane import Placed, search_plane
 from batchpose.method.records import NOT_FOUND, SEARCHED, pose_of
 from batchpose.method.sequence import SearchPose, Sequence, Stamp, previous_pose, search_due
+from batchpose.method.support import Plane, one_object_plane, resting_faces, support_plane
 
 #: What the plane search replaced, by the record's status before it.
 _REPLACED = {

@@ -2,18 +2,14 @@
 
 Objects in a recording mostly rest on something — a table, a shelf, the floor — and rest on it in one of a
 few ways: a bottle upright or on its side, a box on one of its faces. When SIFT gives no pose for an object
-(its plain side to the camera: the mustard bottle's back in ycbv_dev) but confident ones for two or more
-others in the frame, the surface those rest on fixes what a silhouette alone cannot — the distance: an
-object standing on it at a given pixel is at one distance only. For such an object:
+(its plain side to the camera: the mustard bottle's back in ycbv_dev) but confident ones for others in the
+frame, the surface those rest on fixes what a silhouette alone cannot — the distance: an object standing on
+it at a given pixel is at one distance only. For such an object:
 
-1. **support plane** (:func:`support_plane`): every found object's convex-hull faces propose a plane normal;
-   the one along which all of them reach equally low (within ``max_spread_m``), with the camera above it,
-   and which each of them rests on with one of the faces it can stand on (two objects reach equally low
-   along many normals, most of them touching a corner or an edge), is the surface they rest on;
-2. **resting poses**: the object's stable poses on a plane (:meth:`trimesh.Trimesh.compute_stable_poses`,
-   those with probability at least ``min_stable``), each turned about the plane's normal in ``angles``
-   steps;
-3. **search**: for each resting pose and turn, its silhouette is correlated with the frame's colour
+1. **support plane and resting poses** (:mod:`batchpose.method.support`): the surface the most found objects
+   rest on (or the one found object's, by the image's up direction), and the object's stable poses on it,
+   each turned about the plane's normal in ``angles`` steps;
+2. **search**: for each resting pose and turn, its silhouette is correlated with the frame's colour
    log-odds map (the object's colours against the frame's outside the found objects; the pixels the found
    objects cover count 0: they are explained), at each place with the size the plane's distance there
    gives it. The best distinct placements by the colours they hold (4 x ``starts``) are candidates, and
@@ -24,7 +20,7 @@ object standing on it at a given pixel is at one distance only. For such an obje
    back), and the best at two places none of those is at. Near the frame's border a silhouette is scored
    on its part in the frame (the map padded with its median: the frame goes on as it mostly is), if at
    least ``min_visible`` of it is in the frame;
-4. **refine**: each is turned about the normal and slid along the plane while the mesh rendered there
+3. **refine**: each is turned about the normal and slid along the plane while the mesh rendered there
    matches the frame better, over the silhouette pixels no found object hides or covers (those behind it
    are the found object's texture): texture correlation in Lab plus ``colour_weight`` x mean colour
    log-odds plus ``edge_weight`` x the edge score (in 15 and 8 degree steps; the best then in 4 and 2).
@@ -37,7 +33,7 @@ object standing on it at a given pixel is at one distance only. For such an obje
    colour and texture change little: on tabletop frames (the share of outline pixels within 1.5 px of an
    edge) 0.67-0.97 there, 0.3-0.8 one or two centimetres aside, 0.05 (90 % under 0.41) where the search
    places an object the frame does not show (reports/ACCURACY.md at 8fba8e3, "Session 27");
-5. **verify**: a placement is kept if at least ``min_visible`` of its silhouette is not hidden by a found
+4. **verify**: a placement is kept if at least ``min_visible`` of its silhouette is not hidden by a found
    object, those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
    silhouette by ``min_contrast`` (it stands out from where it stands), the texture correlation is at
    least ``min_match``, and — once finely refined — the edge score at least ``min_edge`` (not checked
@@ -48,7 +44,7 @@ object standing on it at a given pixel is at one distance only. For such an obje
    pose. The best refined placement that passes all but the edge checks (with ``edge_confirms``, one colour
    check may fail too) is refined in the fine steps and kept if it then passes every check (else the next).
 
-With tracking on, the next frame of a sequence refines the previous frame's placement first (step 4 only)
+With tracking on, the next frame of a sequence refines the previous frame's placement first (step 3 only)
 and searches only when that no longer passes. reports/ACCURACY.md at 8fba8e3 ("Session 10", "Session 11") has the
 figures.
 """
@@ -57,16 +53,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from batchpose.config import PlaneConfig
 from batchpose.method.appearance import N_BINS, colour_bins, texture_match
-
-if TYPE_CHECKING:
-    import trimesh
+from batchpose.method.support import Plane, resting, turn_to
 
 #: The coarse search's resolution (every LEVEL-th pixel).
 LEVEL = 4
@@ -74,8 +67,6 @@ LEVEL = 4
 HIDDEN_M = 0.01
 #: Consecutive sizes of the coarse search differ by this factor (the plane gives each place one of them).
 SIZE_STEP = 1.1
-#: A support plane must be one each found object rests on with a stable face turned at most this far from it.
-STABLE_DEG = 10.0
 #: The coarse search's best placements judged by rendering (texture and colour) for each one refined.
 CANDIDATES_PER_START = 4
 #: Besides its best, the coarse search keeps candidates at this many other places ...
@@ -101,26 +92,12 @@ EDGE_CLEAR_PX = 2
 #: An edge score needs at least this many outline pixels left (fewer: 0), and this many frame edge pixels in
 #: the judged square (fewer: NaN, the frame says nothing there).
 EDGE_MIN_PIXELS = 10
-#: One object's surface (:func:`one_object_plane`) is the resting face nearest the image's up direction only
-#: when every other is at least this much farther (degrees; resting faces are merged within 15).
-MARGIN_DEG = 15.0
 #: With ``plane.reface``, the best this many of a start's other resting faces are refined.
 REFACED = 2
 #: The refinement's turn (degrees) and slide (fraction of the diameter) steps, largest first: every start
 #: is refined with the coarse ones, the best of them then with the fine ones.
 COARSE_STEPS = ((15.0, 0.05), (8.0, 0.025))
 FINE_STEPS = ((4.0, 0.0125), (2.0, 0.006))
-
-
-@dataclass(frozen=True)
-class Plane:
-    """A support plane in camera coordinates: ``normal . x == offset`` on it, ``normal`` pointing to the side
-    the objects (and the camera) are on."""
-
-    normal: np.ndarray
-    offset: float
-    spread_m: float  # how far apart the found objects' lowest points are along the normal
-    objects: tuple[str, ...]
 
 
 @dataclass(frozen=True)
@@ -134,141 +111,6 @@ class Placed:
     contrast: float  # ``colour`` less that of the ring of pixels just outside the silhouette
     edge: float = 0.0  # how closely the frame's edges follow the silhouette's outline; NaN: no edges near
     followed: bool = False
-
-
-def support_plane(
-    found: dict[str, tuple[np.ndarray, trimesh.Trimesh]],
-    conf: PlaneConfig,
-    stable: dict[str, np.ndarray] | None = None,
-) -> Plane | None:
-    """The plane the most found objects rest on (at least ``min_objects``; with ``plane.all_objects``, all of
-    them), or None when no such group rests on one.
-
-    Args:
-        found: name -> (cam_from_model, hull) for each confidently found object, ``hull`` a
-            trimesh convex hull of its mesh (model frame).
-        stable: name -> (K, 3) the model-frame outward normals of the faces the object can rest on
-            (:func:`stable_faces`' first): a plane is one each object rests on with one of them (within
-            STABLE_DEG) — two objects reach down equally to many planes, most of them touching a corner
-            or an edge.
-
-    Each found object's largest hull faces, turned downwards, propose a normal; along each, the group is the
-    most objects that rest on it whose lowest points are within ``max_spread_m`` of one another, with the
-    camera above them. The normal with the largest group wins, the least spread among equals. One object
-    standing on another, or a pose off in distance, leaves the others' surface to them.
-    """
-    if len(found) < conf.min_objects:
-        return None
-    names = list(found)
-    down_faces = []
-    for T, hull in found.values():
-        biggest = np.argsort(-hull.area_faces)[: conf.plane_candidates]
-        down_faces.append(-(hull.face_normals[biggest] @ T[:3, :3].T))  # a resting face points down
-    normals = np.concatenate(down_faces)
-    lows = np.stack([((h.vertices @ T[:3, :3].T + T[:3, 3]) @ normals.T).min(axis=0) for T, h in found.values()])
-    rests = np.ones(lows.shape, bool)  # (objects, candidates)
-    for i, name in enumerate(names):
-        if stable is not None and name in stable:
-            down = stable[name] @ found[name][0][:3, :3].T  # the faces' normals in the camera; one points down
-            rests[i] = (down @ -normals.T).max(axis=0) >= np.cos(np.deg2rad(STABLE_DEG))
-    least = len(found) if conf.all_objects else conf.min_objects
-    best: tuple[int, float, int, np.ndarray] | None = None
-    for c in range(len(normals)):
-        group, spread = _lowest_group(lows[:, c], rests[:, c], conf.max_spread_m)
-        if len(group) < least or lows[group, c].mean() >= 0:  # the camera (the origin) must be above it
-            continue
-        if best is None or (len(group), -spread) > (best[0], -best[1]):
-            best = (len(group), spread, c, group)
-    if best is None:
-        return None
-    _, spread, c, group = best
-    return Plane(normals[c], float(lows[group, c].mean()), float(spread), tuple(names[i] for i in group))
-
-
-def _lowest_group(lows: np.ndarray, rests: np.ndarray, max_spread: float) -> tuple[np.ndarray, float]:
-    """Of the objects that ``rests``, the most whose ``lows`` are within ``max_spread`` of one another, the
-    least spread among equals: (their indices, ascending, and their spread)."""
-    idx = np.flatnonzero(rests)
-    if not len(idx):
-        return idx, 0.0
-    order = idx[np.argsort(lows[idx])]
-    values = lows[order]
-    best = (1, 0.0, 0, 1)
-    for i in range(len(order)):
-        j = int(np.searchsorted(values, values[i] + max_spread, side="right"))
-        size, spread = j - i, float(values[j - 1] - values[i])
-        if (size, -spread) > (best[0], -best[1]):
-            best = (size, spread, i, j)
-    return np.sort(order[best[2] : best[3]]), best[1]
-
-
-def one_object_plane(name: str, T: np.ndarray, hull: trimesh.Trimesh, faces: list[np.ndarray], conf: PlaneConfig):
-    """The plane one found object rests on (``plane.one_object_tilt_deg``), or None.
-
-    With two objects, the height they share picks the surface; one object could rest on any of its resting
-    faces. The camera's roll and pitch pick it instead: of ``faces`` (:func:`resting_faces`: the model-frame
-    outward normals of the faces it rests on, rotated into the camera by ``T``), the surface is the one whose
-    upward normal is nearest the image's up direction (camera -y): within ``one_object_tilt_deg`` of it, every
-    other face at least :data:`MARGIN_DEG` farther, and the camera above it, looking down at the object by at
-    least that angle. Otherwise (a box seen along its
-    diagonal or from straight above, a rolled camera) None: the search does not guess.
-    """
-    if not conf.one_object_tilt_deg or not faces:
-        return None
-    ups = -(np.asarray(faces, float) @ T[:3, :3].T)  # camera frame, pointing away from the surface
-    tilt = np.degrees(np.arccos(np.clip(-ups[:, 1] / np.linalg.norm(ups, axis=1), -1.0, 1.0)))
-    order = np.argsort(tilt)
-    if tilt[order[0]] > conf.one_object_tilt_deg or (len(order) > 1 and tilt[order[1]] < tilt[order[0]] + MARGIN_DEG):
-        return None
-    normal = ups[order[0]] / np.linalg.norm(ups[order[0]])
-    offset = float(((hull.vertices @ T[:3, :3].T + T[:3, 3]) @ normal).min())
-    centre = T[:3, :3] @ hull.centroid + T[:3, 3]
-    # The camera must look down at the object (from straight above, a box lying flat would otherwise stand on
-    # the side face nearest the image's up, seen edge-on from its own height).
-    looks_down = -offset - (normal @ centre - offset) >= np.sin(np.deg2rad(MARGIN_DEG)) * np.linalg.norm(centre)
-    return Plane(normal, offset, 0.0, (name,)) if offset < 0 and looks_down else None
-
-
-def stable_faces(mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Every face the mesh can rest on (trimesh's stable poses): (K, 3) model-frame outward normals and (K,)
-    probabilities."""
-    transforms, probs = mesh.compute_stable_poses(n_samples=1)
-    down = np.array([np.linalg.inv(T)[:3, :3] @ [0.0, 0.0, -1.0] for T in transforms]).reshape(-1, 3)
-    return down, np.asarray(probs, dtype=float)
-
-
-def resting_faces(stable: tuple[np.ndarray, np.ndarray], min_stable: float) -> list[np.ndarray]:
-    """Of ``stable`` (:func:`stable_faces`), the normals of the faces the mesh rests on with probability at
-    least ``min_stable`` (stable poses within 15 degrees of one another counted as one), likeliest first."""
-    faces: list[list] = []
-    for down, p in zip(*stable, strict=True):
-        for f in faces:
-            if f[1] @ down > np.cos(np.deg2rad(15.0)):
-                f[0] += p
-                break
-        else:
-            faces.append([float(p), down])
-    return [f[1] for f in sorted(faces, key=lambda f: -f[0]) if f[0] >= min_stable]
-
-
-def resting(face: np.ndarray, normal: np.ndarray, angle: float, target_hull: np.ndarray, centre: np.ndarray):
-    """The rotation that lays the model's resting ``face`` (outward normal, model frame) on a plane with
-    ``normal``, turned by ``angle`` about it; and the height of the model point ``centre`` above the plane."""
-    R = cv2.Rodrigues(normal * angle)[0] @ _turn_to(face, -normal)
-    return R, float(normal @ (R @ centre) - (target_hull @ R.T @ normal).min())
-
-
-def _turn_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The shortest rotation taking unit vector ``a`` to unit vector ``b``."""
-    axis = np.cross(a, b)
-    s, c = np.linalg.norm(axis), float(a @ b)
-    if s < 1e-9:
-        if c > 0:
-            return np.eye(3)
-        other = np.array([1.0, 0.0, 0.0]) if abs(a[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        axis = np.cross(a, other)
-        return cv2.Rodrigues(axis / np.linalg.norm(axis) * np.pi)[0]
-    return cv2.Rodrigues(axis / s * np.arctan2(s, c))[0]
 
 
 @dataclass(frozen=True)
@@ -544,7 +386,7 @@ def _refaced(T: np.ndarray, plane: Plane, target: Target) -> list[np.ndarray]:
     want = flat(T[:3, :3] @ axis)
     out = []
     for face in target.faces:
-        R0 = _turn_to(face, -n)  # the face down, not yet turned (as :func:`resting` with angle 0)
+        R0 = turn_to(face, -n)  # the face down, not yet turned (as :func:`resting` with angle 0)
         have = flat(R0 @ axis)
         if np.linalg.norm(have) > 0.3 and np.linalg.norm(want) > 0.3:
             base = turn(have, want)
