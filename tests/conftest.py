@@ -2,14 +2,20 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from batchpose.core.frames import Frame
+from batchpose.io.folders import YcbvFrameSource
+
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "demo_data"
 SHARED_DATA = ROOT.parent / "shared" / "data"
+#: The shared data the tests read: ``SHARED_DATA``, or ``$BATCHPOSE_SHARED_DATA``.
+DATA = Path(os.environ.get("BATCHPOSE_SHARED_DATA", SHARED_DATA))
 CRACKER = DEMO / "models" / "003_cracker_box" / "textured.obj"
 GELATIN = DEMO / "models" / "009_gelatin_box" / "textured.obj"
 
@@ -22,6 +28,14 @@ def rotation(axis: int, deg: float) -> np.ndarray:
     R = np.eye(3)
     R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
     return R
+
+
+def ycbv_dev_frame(frame_id: str) -> Frame:
+    """The frame ``frame_id`` of the shared ycbv_dev data set; the test is skipped where the data is not."""
+    root = DATA / "ycbv_dev"
+    if not root.is_dir():
+        pytest.skip(f"shared YCB-Video dev data not at {root} (set BATCHPOSE_SHARED_DATA)")
+    return next(f for f in YcbvFrameSource(root) if f.frame_id == frame_id)
 
 
 # A canonical 640x480 camera for synthetic tests.

@@ -4,25 +4,20 @@ placement followed from the previous frame set down on this frame's plane first.
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
 from batchpose.config import PlaneConfig
 from batchpose.core.frames import Camera, decode_image
-from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.mesh import load_mesh
 from batchpose.method.appearance import N_BINS, colour_bins
 from batchpose.method.plane import Target, search_plane
 from batchpose.method.render import get_renderer
 from batchpose.method.support import one_object_plane, resting_faces, stable_faces
 from batchpose.method.views import fibonacci_directions, look_at
-from tests.conftest import SHARED_DATA
+from tests.conftest import DATA, ycbv_dev_frame
 
-DATA = Path(os.environ.get("BATCHPOSE_SHARED_DATA", SHARED_DATA))
 FOUND, LOST = "004_sugar_box", "006_mustard_bottle"
 
 
@@ -42,10 +37,7 @@ def _target(model, renderer, K: np.ndarray) -> Target:
 
 @pytest.fixture(scope="module")
 def scene(cache_dir):
-    root = DATA / "ycbv_dev"
-    if not root.is_dir():
-        pytest.skip(f"shared YCB-Video dev data not at {root} (set BATCHPOSE_SHARED_DATA)")
-    frame = next(f for f in YcbvFrameSource(root) if f.frame_id == "0001/000005")
+    frame = ycbv_dev_frame("0001/000005")
     models = {n: load_mesh(DATA / "ycb_models" / n / "textured.obj", cache_dir=cache_dir) for n in (FOUND, LOST)}
     truth = {g.obj_name: g.cam_from_model for g in frame.gt}
     return frame, decode_image(frame), models, truth

@@ -5,8 +5,6 @@ though the texture match fails; a pose 3 cm beside it starts none either way."""
 from __future__ import annotations
 
 import dataclasses
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +12,6 @@ import pytest
 from batchpose.config import EstimatorConfig
 from batchpose.core.frames import decode_image
 from batchpose.core.poses import PoseRecord
-from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.mesh import load_mesh
 from batchpose.method.appearance import texture_match
 from batchpose.method.features import to_gray
@@ -22,18 +19,14 @@ from batchpose.method.objects import Objects
 from batchpose.method.render import get_renderer
 from batchpose.method.score import FrameEdges, compare
 from batchpose.method.tracked import seed_track
-from tests.conftest import SHARED_DATA
+from tests.conftest import DATA, ycbv_dev_frame
 
-DATA = Path(os.environ.get("BATCHPOSE_SHARED_DATA", SHARED_DATA))
 NAME = "007_tuna_fish_can"
 
 
 @pytest.fixture(scope="module")
 def scene(cache_dir):
-    root = DATA / "ycbv_dev"
-    if not root.is_dir():
-        pytest.skip(f"shared YCB-Video dev data not at {root} (set BATCHPOSE_SHARED_DATA)")
-    frame = next(f for f in YcbvFrameSource(root) if f.frame_id == "0049/000010")
+    frame = ycbv_dev_frame("0049/000010")
     model = load_mesh(DATA / "ycb_models" / NAME / "textured.obj", cache_dir=cache_dir)
     truth = next(g.cam_from_model for g in frame.gt if g.obj_name == NAME)
     return frame, decode_image(frame), model, truth

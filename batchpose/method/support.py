@@ -117,8 +117,8 @@ def one_object_plane(name: str, T: np.ndarray, hull: trimesh.Trimesh, faces: lis
     outward normals of the faces it rests on, rotated into the camera by ``T``), the surface is the one whose
     upward normal is nearest the image's up direction (camera -y): within ``one_object_tilt_deg`` of it, every
     other face at least :data:`MARGIN_DEG` farther, and the camera above it, looking down at the object by at
-    least that angle. Otherwise (a box seen along its
-    diagonal or from straight above, a rolled camera) None: the search does not guess.
+    least that angle. Otherwise (a box seen along its diagonal or from straight above, a rolled camera) None:
+    the search does not guess.
     """
     if not conf.one_object_tilt_deg or not faces:
         return None
@@ -130,9 +130,9 @@ def one_object_plane(name: str, T: np.ndarray, hull: trimesh.Trimesh, faces: lis
     normal = ups[order[0]] / np.linalg.norm(ups[order[0]])
     offset = float(((hull.vertices @ T[:3, :3].T + T[:3, 3]) @ normal).min())
     centre = T[:3, :3] @ hull.centroid + T[:3, 3]
-    # The camera must look down at the object (from straight above, a box lying flat would otherwise stand on
-    # the side face nearest the image's up, seen edge-on from its own height).
-    looks_down = -offset - (normal @ centre - offset) >= np.sin(np.deg2rad(MARGIN_DEG)) * np.linalg.norm(centre)
+    # The camera (height -offset) must look down at the object's centre (height normal . centre - offset): from
+    # straight above, a box lying flat would otherwise stand on the side face nearest the image's up.
+    looks_down = -(normal @ centre) >= np.sin(np.deg2rad(MARGIN_DEG)) * np.linalg.norm(centre)
     return Plane(normal, offset, 0.0, (name,)) if offset < 0 and looks_down else None
 
 
