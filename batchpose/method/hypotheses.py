@@ -17,6 +17,7 @@ from batchpose.method.gnc_pnp import planar_alternative, solve_pose
 from batchpose.method.objects import Objects
 from batchpose.method.passes import Pass
 from batchpose.method.refine import Refined, refine_pose
+from batchpose.method.score import FrameEdges, compare
 from batchpose.method.shot import LazyLab
 from batchpose.method.track import Track, anchor_to_render, seed
 
@@ -214,6 +215,8 @@ def planar_mirror(
         return None
     current, mirrored = (objects.render(name, pose, camera) for pose in (res.cam_from_model, T))
     cues = frame_prefers(lab, current, mirrored, conf.planar_mismatch_ratio)
+    if cues is None and conf.planar_score_margin < 1.0:
+        cues = score_prefers(lab, current, mirrored, conf.planar_score_margin)
     timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
     if cues is None:
         return None
@@ -232,6 +235,16 @@ def frame_prefers(lab: LazyLab, current, other, ratio: float) -> str | None:
         return None
     (ca, ea), (cb, eb) = fits
     return f"texture match {cb:.2f} against {ca:.2f}, edges {eb:.2f} against {ea:.2f}"
+
+
+def score_prefers(lab: LazyLab, current, other, margin: float) -> str | None:
+    """The two renders' verification scores ("verification score ...") when ``other``'s, each over its whole
+    silhouette, is higher than ``current``'s by at least ``margin`` (``planar_score_margin``); None otherwise."""
+    edges = FrameEdges(lab.rgb)
+    a, b = (compare(edges, rgb, depth, depth > 0) for rgb, depth in (current, other))
+    if a is None or b is None or not b.score() >= a.score() + margin:
+        return None
+    return f"verification score {b.score():.2f} against {a.score():.2f}"
 
 
 def polish(objects: Objects, name: str, gray: np.ndarray, T: np.ndarray, camera: Camera) -> np.ndarray:

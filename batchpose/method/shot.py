@@ -36,6 +36,10 @@ class LazyLab:
         self._rgb, self.gray = rgb, gray
         self._lab: np.ndarray | None = None
 
+    @property
+    def rgb(self) -> np.ndarray:
+        return self._rgb
+
     def get(self) -> np.ndarray:
         if self._lab is None:
             self._lab = cv2.cvtColor(self._rgb, cv2.COLOR_RGB2LAB)
