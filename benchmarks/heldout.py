@@ -1,13 +1,13 @@
 """Accuracy on objects ycbv_dev does not have: every YCB mesh rendered into real YCB-Video frames.
 
 ycbv_dev holds real frames of 7 objects; ``../shared/data/ycb_models`` holds 12. This script renders each
-of them (lit, not the templates' flat shading) at random poses a YCB-Video camera would see — distance
-0.6–1.2 m, any view direction, roll ±30°, anywhere in the image — into real ycbv_dev frames that do not
-show that object, with a per-frame colour gain, defocus blur, sensor noise, JPEG compression and, in
-half of the frames, a piece of another real frame (one that does not show the object either) covering
-15–35 % of the object. Each frame also gets a depth image (the background frame's sensor depth, the
-object's rendered depth with 2 mm·z² noise and 3 % holes, the occluding piece 10 cm in front of the
-object), used only with ``--set depth.enabled=true``.
+of them (lit, not the templates' flat shading) at random poses a YCB-Video camera would see (``--views``) —
+distance 0.6–1.2 m, anywhere in the image, roll ±30° — into real ycbv_dev frames that do not show that
+object, with a per-frame colour gain, defocus blur, sensor noise, JPEG compression and, in half of the
+frames, a piece of another real frame (one that does not show the object either) covering 15–35 % of the
+object. Each frame also gets a depth image (the background frame's sensor depth, the object's rendered
+depth with 2 mm·z² noise and 3 % holes, the occluding piece 10 cm in front of the object), used only with
+``--set depth.enabled=true``.
 
 Two degradations make the frames score like real ones (``--scale-error``, ``--motion-blur``):
 
@@ -18,7 +18,12 @@ Two degradations make the frames score like real ones (``--scale-error``, ``--mo
   to the run stay the true ones; the depth image follows the ground truth);
 - **motion blur** of a hand-held camera: a line kernel of up to ``--motion-blur`` (4) px in a random direction.
 
-``--scale-error 0 0 --motion-blur 0`` gives the frames of earlier versions (the occluders aside). With
+The views (``--views``): ``table`` (the default) stands the object on one of its resting faces (trimesh's stable
+poses, drawn by their probability), turned any way about the table's normal, and looks at it from 15–65°
+above the table (``--elevation``), as YCB-Video's hand-held cameras look at objects on a table (ycbv_dev's three
+videos: 33–44°); ``any`` draws the view direction uniformly over the sphere, undersides included.
+
+``--views any --scale-error 0 0 --motion-blur 0`` gives the frames of earlier versions (the occluders aside). With
 ``--real RUN`` (a finished ``batchpose run`` of ``data_manifest/ycbv_dev.yaml``) the objects with real
 frames are compared with their scores on the real frames of that run.
 
@@ -29,7 +34,7 @@ objects that are in ycbv_dev, and how many poses were reported ok but are wrong 
 Usage:
     .venv/bin/python benchmarks/heldout.py [--frames 8] [--objects NAME ...] [--pipeline gnc_pose]
         [--keep DIR] [--cache DIR] [--seed 0] [--set KEY=VALUE ...] [--scale-error 0.5 3.7]
-        [--motion-blur 4] [--real RUN]
+        [--motion-blur 4] [--views table|any] [--elevation 15 65] [--real RUN]
 """
 
 from __future__ import annotations
@@ -73,11 +78,37 @@ def random_rotation(rng: np.random.Generator, max_roll_deg: float = 30.0) -> np.
     return roll @ R
 
 
-def place(R: np.ndarray, center_m: np.ndarray, K: np.ndarray, w: int, h: int, rng: np.random.Generator) -> np.ndarray:
-    """cam_from_model with the object's centre 0.6–1.2 m away, projecting into the middle 60 % of the image."""
+def table_rotation(
+    rng: np.random.Generator, stable: tuple[np.ndarray, np.ndarray], elevation_deg=(15.0, 65.0), max_roll_deg=30.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-from-model rotation of an object resting on a table, seen along the optical axis: one of its
+    ``stable`` poses (trimesh's transforms and probabilities, drawn by probability), turned any way about the
+    table's normal, the camera ``elevation_deg`` above the table, rolled about the optical axis; and the
+    table's upward normal in the camera frame."""
+    from batchpose.method.views import look_at  # noqa: PLC0415
+
+    transforms, probs = stable
+    on_table = transforms[rng.choice(len(probs), p=probs / probs.sum())][:3, :3]
+    yaw = rng.uniform(0.0, 2.0 * np.pi)
+    e = np.deg2rad(rng.uniform(*elevation_deg))
+    R = look_at(np.array([np.cos(e), 0.0, np.sin(e)]), np.zeros(3), np.array([0.0, 0.0, 1.0]))[:3, :3]
+    a = np.deg2rad(rng.uniform(-max_roll_deg, max_roll_deg))
+    roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    return roll @ R @ cv2.Rodrigues(np.array([0.0, 0.0, yaw]))[0] @ on_table, roll @ R @ np.array([0.0, 0.0, 1.0])
+
+
+def place(
+    R: np.ndarray, center_m: np.ndarray, K: np.ndarray, w: int, h: int, rng: np.random.Generator, on_ray=False
+) -> np.ndarray:
+    """cam_from_model with the object's centre 0.6–1.2 m away, projecting into the middle 60 % of the image.
+    ``on_ray``: ``R`` is the rotation seen along the optical axis, turned with the ray to where the object is."""
+    from batchpose.method.support import turn_to  # noqa: PLC0415
+
     z = rng.uniform(0.6, 1.2)
     u, v = rng.uniform(0.2 * w, 0.8 * w), rng.uniform(0.2 * h, 0.8 * h)
     c_cam = z * np.linalg.solve(K, np.array([u, v, 1.0]))
+    if on_ray:
+        R = turn_to(np.array([0.0, 0.0, 1.0]), c_cam / np.linalg.norm(c_cam)) @ R
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = c_cam - R @ center_m
@@ -138,10 +169,17 @@ def motion_kernel(length_px: float, angle: float) -> np.ndarray:
 
 
 def generate(
-    out: Path, objects: list[str], n: int, seed: int, scale_error=(0.5, 3.7), motion_blur: float = 4.0
+    out: Path,
+    objects: list[str],
+    n: int,
+    seed: int,
+    scale_error=(0.5, 3.7),
+    motion_blur: float = 4.0,
+    views: str = "table",
+    elevation=(15.0, 65.0),
 ) -> Path:
     """Write the BOP data set and its manifest; returns the manifest path. ``scale_error`` (percent, low and
-    high) and ``motion_blur`` (px): see the module docstring."""
+    high), ``motion_blur`` (px), ``views`` and ``elevation`` (degrees): see the module docstring."""
     source = YcbvFrameSource(DEV)
     bgs = [(f, decode_image(f), decode_depth(f)) for f in source if f.scene_id < 10000]  # real frames only
     renderer = get_renderer()
@@ -150,6 +188,7 @@ def generate(
     for k, name in enumerate(objects, start=1):
         names[k] = name
         model = load_mesh(MODELS / name / "textured.obj", name=name)
+        stable = model.mesh.compute_stable_poses(n_samples=1) if views == "table" else None
         usable = [(f, img, d) for f, img, d in bgs if name not in {g.obj_name for g in f.gt}]
         scene = out / "data" / f"{k:06d}"
         (scene / "rgb").mkdir(parents=True, exist_ok=True)
@@ -163,7 +202,10 @@ def generate(
             shown_K[:2, :2] *= 1.0 - 0.01 * real.uniform(*scale_error)
             blur_px = real.uniform(0.0, motion_blur)
             for _ in range(20):  # a pose whose render stays inside the image
-                T = place(random_rotation(rng), model.center_m, K, w, h, rng)
+                if stable is None:
+                    T = place(random_rotation(rng), model.center_m, K, w, h, rng)
+                else:
+                    T = place(table_rotation(rng, stable, elevation)[0], model.center_m, K, w, h, rng, on_ray=True)
                 rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit")
                 ys, xs = np.nonzero(depth > 0)
                 if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
@@ -252,6 +294,17 @@ def main() -> int:
         help="objects shown this many percent smaller than the ground truth (default 0.5 3.7)",
     )
     ap.add_argument("--motion-blur", type=float, default=4.0, help="longest motion blur, px (default 4)")
+    ap.add_argument(
+        "--views", choices=("table", "any"), default="table", help="resting on a table (default) or any direction"
+    )
+    ap.add_argument(
+        "--elevation",
+        nargs=2,
+        type=float,
+        default=(15.0, 65.0),
+        metavar=("LO", "HI"),
+        help="--views table: the camera this many degrees above the table (default 15 65)",
+    )
     ap.add_argument("--real", type=Path, help="a ycbv_dev run: compare with its real frames' scores")
     run_options(ap)
     args = ap.parse_args()
@@ -262,8 +315,20 @@ def main() -> int:
         p.name for p in MODELS.iterdir() if (p / "textured.obj").is_file() and (p / "points.xyz").is_file()
     )
     out = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="batchpose_heldout_"))
-    print(f"# heldout: {machine()}; code {code_version()}; {len(objects)} objects x {args.frames} frames -> {out}")
-    manifest = generate(out, objects, args.frames, args.seed, tuple(args.scale_error), args.motion_blur)
+    print(
+        f"# heldout: {machine()}; code {code_version()}; {len(objects)} objects x {args.frames} frames, "
+        f"views {args.views} -> {out}"
+    )
+    manifest = generate(
+        out,
+        objects,
+        args.frames,
+        args.seed,
+        tuple(args.scale_error),
+        args.motion_blur,
+        args.views,
+        tuple(args.elevation),
+    )
     run_pipeline(manifest, out / "run", args)
     summary = pd.read_csv(out / "run" / "report" / "summary.csv")
     per = summary[~summary["obj_name"].isin(["mean", "pooled"])].copy()
