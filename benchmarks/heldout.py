@@ -20,8 +20,9 @@ Two degradations make the frames score like real ones (``--scale-error``, ``--mo
 
 The views (``--views``): ``table`` (the default) stands the object on one of its resting faces (trimesh's stable
 poses, drawn by their probability), turned any way about the table's normal, and looks at it from 15–65°
-above the table (``--elevation``), as YCB-Video's hand-held cameras look at objects on a table (ycbv_dev's three
-videos: 33–44°); ``any`` draws the view direction uniformly over the sphere, undersides included.
+above the table (``--elevation``), as YCB-Video's hand-held cameras look at objects on a table (ycbv_dev's
+real videos: 31–42°, ``benchmarks/line_of_sight.py``); ``any`` draws the view direction uniformly over the
+sphere, undersides included.
 
 ``--views any --scale-error 0 0 --motion-blur 0`` gives the frames of earlier versions (the occluders aside). With
 ``--real RUN`` (a finished ``batchpose run`` of ``data_manifest/ycbv_dev.yaml``) the objects with real

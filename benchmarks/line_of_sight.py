@@ -17,7 +17,9 @@ wrong focal length or mesh scale shows as one constant ratio). Printed per objec
    ADD < 0.1 d as it is, with the along-ray error removed, with only its per-sequence mean removed (what one
    external reference a sequence would pin: a depth frame, a known size) and with only its scatter removed
    (what averaging the frames of a static object could give);
-5. the camera's travel over each video (the parallax a static scene's frames hold);
+5. the camera's travel over each video (the parallax a static scene's frames hold) and its elevation above
+   the table (the plane the ground-truth poses rest on, :func:`batchpose.method.support.support_plane`, or
+   one object's, ``one_object_plane``; the angle between it and the ray to each object's centre);
 6. with two or more runs (e.g. the default and ``rgbd``): the along-ray error side by side on the pairs
    every run got right.
 
@@ -184,6 +186,41 @@ def camera_travel(run: RunData) -> str:
         dist = np.median(np.linalg.norm(centres, axis=1))
         pct = 100 * travel / dist
         lines.append(f"  {video}: {len(rows)} frames, {1000 * travel:.0f} mm at {dist:.2f} m ({pct:.1f} %)")
+    return "\n".join(lines)
+
+
+def camera_elevation(run: RunData) -> str:
+    """Per video: the camera's elevation above the table (degrees, min–max over its frames and objects), the
+    table being the plane the ground-truth poses rest on (the plane search's own rule)."""
+    from batchpose.config import PlaneConfig  # noqa: PLC0415
+    from batchpose.method.support import one_object_plane, resting_faces, stable_faces, support_plane  # noqa: PLC0415
+
+    conf = PlaneConfig()
+    meshes = {n: load_mesh(Path(o["mesh"]), run.mesh_conf, name=n).mesh for n, o in run.objects.items()}
+    hulls = {n: m.convex_hull for n, m in meshes.items()}
+    stable = {n: stable_faces(m) for n, m in meshes.items()}
+    downs = {n: st[0] for n, st in stable.items()}
+    gt = run.gt.assign(video=run.gt["frame_id"].map(video_of))
+    lines = []
+    for video, g in gt.groupby("video"):
+        angles = []
+        for _, rows in g[g["obj_name"].isin(meshes)].groupby("frame_id"):
+            poses = {}
+            for r in rows.to_dict("records"):
+                T = np.eye(4)
+                T[:3, :3], T[:3, 3] = _rt(r)
+                poses[r["obj_name"]] = T
+            plane = support_plane({n: (T, hulls[n]) for n, T in poses.items()}, conf, downs)
+            if plane is None and len(poses) == 1:
+                ((n, T),) = poses.items()
+                plane = one_object_plane(n, T, hulls[n], resting_faces(stable[n], conf.min_stable), conf)
+            if plane is None:
+                continue
+            for n in plane.objects:
+                c = poses[n][:3, :3] @ hulls[n].centroid + poses[n][:3, 3]
+                angles.append(np.degrees(np.arcsin(-(plane.normal @ c) / np.linalg.norm(c))))
+        if angles:
+            lines.append(f"  {video}: {len(angles)} objects on the table, {min(angles):.0f}–{max(angles):.0f}°")
     return "\n".join(lines)
 
 
@@ -418,6 +455,8 @@ def study(run_dir: Path, max_rot_deg: float, with_depth: bool) -> pd.DataFrame:
     print("\nADD < 0.1 d of the right poses\n" + pinning_table(pairs))
     print("\nthe camera's travel over each video's frames (what a static object's frames can triangulate)")
     print(camera_travel(run))
+    print("the camera's elevation above the table (the plane the ground-truth poses rest on)")
+    print(camera_elevation(run))
     wrong = every[every["rot_deg"] >= max_rot_deg]
     fails = every["add_m"] >= 0.1 * every["diameter_m"]
     rescued = fails & (every["add_no_along_m"] < 0.1 * every["diameter_m"])
