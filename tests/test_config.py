@@ -25,17 +25,17 @@ from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose. The template libraries' cache
 # keys hash only the sections that make a library (io.library).
-DEFAULT_HASH = "dc87006062c95680"
-DEFAULT_LAYOUT_HASH = "81602704f5e9eb3c"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "731d0fcee9114d2b"
+DEFAULT_LAYOUT_HASH = "9802d239cc3c2691"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "5060c4adaf1424f3",
-    "gnc_pose.yaml": "dc87006062c95680",
-    "no_geom_weights.yaml": "936956f5b63a3617",
-    "oracle_roi.yaml": "449da5cd76ed8992",
-    "paper.yaml": "3c8f08b6e70aeac5",
-    "ransac_only.yaml": "71e2826aa8d3ea85",
-    "rgbd.yaml": "b3b99f1e5d4c82e4",
-    "tp_ub.yaml": "245a2464f255ba4a",
+    "fast.yaml": "1c7a73f913d31062",
+    "gnc_pose.yaml": "731d0fcee9114d2b",
+    "no_geom_weights.yaml": "560d5c08aa6f2e94",
+    "oracle_roi.yaml": "ca965de56ac1424e",
+    "paper.yaml": "6b5d00a0b56a3faf",
+    "ransac_only.yaml": "6c786be3e399707b",
+    "rgbd.yaml": "e53fca9436104e85",
+    "tp_ub.yaml": "b24f512021b7e7ea",
 }
 
 

@@ -91,12 +91,12 @@ class EstimatorConfig:
     pairs. 0: no check (the ``paper`` pipeline)."""
     alternatives_score: float = knob(0.5, gt=0, le=1)
     """See ``alternatives``."""
-    planar_score_margin: float = knob(0.02, ge=0, le=1)
-    """See ``planar_spread``: the other pose also replaces the pose when, rendered whole, its verification score
-    (:mod:`batchpose.method.score`, as ``min_verification``'s) is higher by at least this, though colour and
-    edges do not both prefer it where the two differ: a box's printed face seen from afar fits both poses
-    (the other one shows the same face from below, with the bottom where the frame shows the lid), and the
-    outline tells them apart where the printed face cannot. 1: colour and edges alone (as before)."""
+    checks_score_margin: float = knob(0.02, ge=0, le=1)
+    """The other pose of ``alternatives``' and ``planar_spread``'s checks also replaces the pose when, each
+    rendered whole, its verification score (:mod:`batchpose.method.score`, as ``min_verification``'s) is
+    higher by at least this, though colour and edges where the two differ do not both prefer it: a box's
+    printed face seen from afar fits two poses (one shows it from below, the bottom where the frame shows the
+    lid), and the outline tells them apart where the printed face cannot. 1: colour and edges alone."""
     planar_residual_ratio: float = knob(2.0, ge=1)
     """See ``planar_spread``: the other pose's median inlier residual may be at most this many times the
     pose's own (taken as at least 0.5 px)."""

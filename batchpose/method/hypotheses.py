@@ -148,7 +148,8 @@ def _project(X: np.ndarray, T: np.ndarray, camera: Camera) -> np.ndarray:
 
 def alternative(objects: Objects, lab: LazyLab | None, name: str, res, tried: list, camera: Camera, timings: dict):
     """``alternatives``: ((result, x, X), reason) of a refined hypothesis the frame (``lab``) prefers to the
-    pose ``res`` by colour and by edges where their renders differ; None to keep the pose."""
+    pose ``res`` by colour and by edges where their renders differ, or by the verification score
+    (``checks_score_margin``); None to keep the pose."""
     conf = objects.conf
     if conf.alternatives <= 0 or lab is None or len(tried) < 2:
         return None
@@ -159,7 +160,8 @@ def alternative(objects: Objects, lab: LazyLab | None, name: str, res, tried: li
     current, chosen, why = objects.render(name, res.cam_from_model, camera), None, ""
     for r in picked:
         rendered = objects.render(name, r.result.cam_from_model, camera)
-        if (cues := frame_prefers(lab, current, rendered, conf.planar_mismatch_ratio)) is None:
+        cues = frame_prefers(lab, current, rendered, conf.planar_mismatch_ratio)
+        if cues is None and (cues := score_prefers(lab, current, rendered, conf.checks_score_margin)) is None:
             continue
         current, chosen = rendered, r
         why = f"a {r.result.n_inliers}-inlier alternative fits the frame better where the two differ ({cues})"
@@ -215,8 +217,8 @@ def planar_mirror(
         return None
     current, mirrored = (objects.render(name, pose, camera) for pose in (res.cam_from_model, T))
     cues = frame_prefers(lab, current, mirrored, conf.planar_mismatch_ratio)
-    if cues is None and conf.planar_score_margin < 1.0:
-        cues = score_prefers(lab, current, mirrored, conf.planar_score_margin)
+    if cues is None:
+        cues = score_prefers(lab, current, mirrored, conf.checks_score_margin)
     timings["refine"] = timings.get("refine", 0.0) + time.perf_counter() - t0
     if cues is None:
         return None
@@ -239,7 +241,10 @@ def frame_prefers(lab: LazyLab, current, other, ratio: float) -> str | None:
 
 def score_prefers(lab: LazyLab, current, other, margin: float) -> str | None:
     """The two renders' verification scores ("verification score ...") when ``other``'s, each over its whole
-    silhouette, is higher than ``current``'s by at least ``margin`` (``planar_score_margin``); None otherwise."""
+    silhouette, is higher than ``current``'s by at least ``margin`` (``checks_score_margin``); None otherwise
+    (always with a margin of 1)."""
+    if margin >= 1.0:
+        return None
     edges = FrameEdges(lab.rgb)
     a, b = (compare(edges, rgb, depth, depth > 0) for rgb, depth in (current, other))
     if a is None or b is None or not b.score() >= a.score() + margin:
