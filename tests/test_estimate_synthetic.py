@@ -162,3 +162,27 @@ def test_a_second_retry_at_a_finer_sigma_only_touches_what_the_first_left_weak(c
         else:
             assert (b.status, b.reason) == (a.status, a.reason)
     assert replaced >= 1
+
+
+def test_a_pose_needs_inliers_on_distinct_pixels(cracker_model, cracker_library):
+    """``min_distinct_inliers``: the inliers are counted by the frame pixels they lie on; a pose on fewer than
+    the floor is pnp_failed, with a reason naming the count (here the floor is raised over this pose's)."""
+    import dataclasses
+
+    rng = np.random.default_rng(7)
+    T = random_pose(rng, cracker_model.center_m)
+    img, cam = compose(rng, cracker_model, T), Camera(K_SYN, 640, 480)
+    models, libraries = {cracker_model.name: cracker_model}, {cracker_model.name: cracker_library}
+    rec = PoseEstimator(EstimatorConfig(), libraries, models=models, renderer=get_renderer()).estimate_image(
+        img, cam, [cracker_model.name]
+    )[0]
+    assert rec.ok
+    distinct = len(np.unique(np.round(rec.inliers_px).astype(np.int64), axis=0))
+    assert 4 <= distinct <= rec.n_inliers
+    floor = dataclasses.replace(EstimatorConfig(), min_distinct_inliers=distinct + 1)
+    conf = dataclasses.replace(floor, features=dataclasses.replace(floor.features, retry_contrast_threshold=0))
+    failed = PoseEstimator(conf, libraries, models=models, renderer=get_renderer()).estimate_image(
+        img, cam, [cracker_model.name]
+    )[0]
+    assert failed.status == "pnp_failed"
+    assert "distinct pixels, need" in failed.reason

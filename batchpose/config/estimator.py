@@ -33,6 +33,10 @@ class EstimatorConfig:
     """"gnc_pose" or "tp_ub" (template upper bound: needs ground truth, evaluation only)."""
     min_matches: int = knob(6, ge=4, note="PnP")
     """Fewer 2D-3D pairs than this: status too_few_matches."""
+    min_distinct_inliers: int = knob(4, ge=0)
+    """A pose whose inliers lie on fewer distinct frame pixels than this (to the pixel) is pnp_failed: a frame
+    keypoint matched to several templates is one point, and fewer than 4 points leave a pose undetermined
+    (any pose through them fits them). 0: no check (the ``paper`` pipeline)."""
     confidence_inliers: float = knob(15.0, gt=0)
     """Confidence = (1 - exp(-n_inliers / this)) * exp(-median_residual_px / confidence_residual_px)."""
     confidence_residual_px: float = knob(4.0, gt=0)

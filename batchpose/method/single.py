@@ -200,6 +200,11 @@ def estimate_object(
         (res, x_used, X_used), rec.reason = other
     if (mirrored := planar_mirror(objects, shot.lab, name, res, x_used, X_used, camera, timings)) is not None:
         res, rec.reason = mirrored
+    distinct = len(np.unique(np.round(x_used[res.inliers]).astype(np.int64), axis=0))
+    if distinct < conf.min_distinct_inliers:
+        rec.status = "pnp_failed"
+        rec.reason = f"its {res.n_inliers} inliers lie on {distinct} distinct pixels, need {conf.min_distinct_inliers}"
+        return rec
     _finish(objects, shot, rec, res, x_used)
     return rec
 
