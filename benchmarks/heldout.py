@@ -74,9 +74,13 @@ def random_rotation(rng: np.random.Generator, max_roll_deg: float = 30.0) -> np.
     d /= np.linalg.norm(d)
     up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.95 else np.array([1.0, 0.0, 0.0])
     R = look_at(d, np.zeros(3), up)[:3, :3]
+    return _roll(rng, max_roll_deg) @ R
+
+
+def _roll(rng: np.random.Generator, max_roll_deg: float) -> np.ndarray:
+    """A rotation about the optical axis by up to ``max_roll_deg`` either way."""
     a = np.deg2rad(rng.uniform(-max_roll_deg, max_roll_deg))
-    roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    return roll @ R
+    return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
 
 
 def table_rotation(
@@ -93,8 +97,7 @@ def table_rotation(
     yaw = rng.uniform(0.0, 2.0 * np.pi)
     e = np.deg2rad(rng.uniform(*elevation_deg))
     R = look_at(np.array([np.cos(e), 0.0, np.sin(e)]), np.zeros(3), np.array([0.0, 0.0, 1.0]))[:3, :3]
-    a = np.deg2rad(rng.uniform(-max_roll_deg, max_roll_deg))
-    roll = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    roll = _roll(rng, max_roll_deg)
     return roll @ R @ cv2.Rodrigues(np.array([0.0, 0.0, yaw]))[0] @ on_table, roll @ R @ np.array([0.0, 0.0, 1.0])
 
 

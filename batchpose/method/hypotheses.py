@@ -17,7 +17,7 @@ from batchpose.method.gnc_pnp import planar_alternative, solve_pose
 from batchpose.method.objects import Objects
 from batchpose.method.passes import Pass
 from batchpose.method.refine import Refined, refine_pose
-from batchpose.method.score import FrameEdges, compare
+from batchpose.method.score import compare
 from batchpose.method.shot import LazyLab
 from batchpose.method.track import Track, anchor_to_render, seed
 
@@ -245,8 +245,7 @@ def score_prefers(lab: LazyLab, current, other, margin: float) -> str | None:
     (always with a margin of 1)."""
     if margin >= 1.0:
         return None
-    edges = FrameEdges(lab.rgb)
-    a, b = (compare(edges, rgb, depth, depth > 0) for rgb, depth in (current, other))
+    a, b = (compare(lab.edges, rgb, depth, depth > 0) for rgb, depth in (current, other))
     if a is None or b is None or not b.score() >= a.score() + margin:
         return None
     return f"verification score {b.score():.2f} against {a.score():.2f}"

@@ -7,6 +7,7 @@ sets, and the retries' replaced records the weak-pose check may give back.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import cv2
@@ -18,6 +19,7 @@ from batchpose.method.correspondences import flann_index, nearest_with_rival
 from batchpose.method.objects import Objects
 from batchpose.method.presence import JointNearest, as_object
 from batchpose.method.records import Replaced
+from batchpose.method.score import FrameEdges
 
 
 def check_image(rgb: np.ndarray, where: str = "image") -> None:
@@ -36,9 +38,10 @@ class LazyLab:
         self._rgb, self.gray = rgb, gray
         self._lab: np.ndarray | None = None
 
-    @property
-    def rgb(self) -> np.ndarray:
-        return self._rgb
+    @functools.cached_property
+    def edges(self) -> FrameEdges:
+        """The image as the verification score compares renders with it (made once, on first use)."""
+        return FrameEdges(self._rgb)
 
     def get(self) -> np.ndarray:
         if self._lab is None:
