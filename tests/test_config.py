@@ -174,6 +174,16 @@ def test_an_unknown_key_names_its_dotted_path_and_the_nearest_key():
     assert _load(apply_overrides({}, ["gnc.kappa=3"])).gnc.kappa == 3.0
 
 
+def test_a_key_given_twice_is_a_one_line_error(tmp_path):
+    """PyYAML would keep the last of two equal keys and drop the first without a word."""
+    path = tmp_path / "p.yaml"
+    path.write_text("gnc:\n  kappa: 3\n  kappa: 4\nmin_confidence: 0.2\n")
+    with pytest.raises(ConfigError, match=r"^.*p\.yaml: not valid YAML: key 'kappa' given twice \(line 3\)$"):
+        load_yaml(path)
+    path.write_text("gnc:\n  kappa: 3\nmin_confidence: 0.2\n")
+    assert load_yaml(path) == {"gnc": {"kappa": 3}, "min_confidence": 0.2}
+
+
 @pytest.mark.parametrize(
     "data, message",
     [
