@@ -295,6 +295,38 @@ def test_workers_share_the_cores_instead_of_each_taking_all():
     assert out.stdout.split() == ["1", "1"]
 
 
+def test_a_worker_that_loads_every_library_after_its_first_task_is_not_restarted():
+    # loky measures a worker after its first task (building one template library, say) and restarts it once
+    # it has grown past that by its leak limit; estimating then loads every object's library (~3 GB for
+    # the 12 YCB objects). Our workers' limit is a quarter of the machine's memory: a worker growing by
+    # 1.6 GB (over the 1.5 GB floor, which restarts it) keeps its process.
+    from batchpose.stages.workers import leak_limit_bytes
+
+    if leak_limit_bytes() < 2.0e9:
+        pytest.skip(f"this machine's limit ({leak_limit_bytes() / 1e9:.1f} GB) leaves no room to grow 1.6 GB")
+    code = (
+        "import os, time, warnings\n"
+        "import numpy as np\n"
+        "from joblib.externals.loky import get_reusable_executor\n"
+        "from batchpose.stages.workers import loky_options\n"
+        "def grow(n):  # held in the worker's own sys module: a global here would travel with the function\n"
+        "    import sys\n"
+        "    import numpy as np\n"
+        "    sys.batchpose_test_held = [*getattr(sys, 'batchpose_test_held', []), np.ones(n, np.uint8)]\n"
+        "    return os.getpid()\n"
+        "warnings.simplefilter('error')\n"
+        "ex = get_reusable_executor(max_workers=1, **loky_options())\n"
+        "pids = [ex.submit(grow, 1).result()]\n"
+        "for _ in range(3):\n"
+        "    time.sleep(1.2)  # loky checks a worker's size at most once a second\n"
+        "    pids.append(ex.submit(grow, 0 if len(pids) > 1 else int(1.6e9)).result())\n"
+        "print(len(set(pids)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1"], out.stderr
+
+
 @pytest.mark.slow
 def test_rgbd_pipeline_on_the_demo_frames_aligns_to_their_depth(demo_run, tmp_path, cache_dir):
     """The bundled real frames carry their depth images: rgbd.yaml takes the cracker box's 1-3 % distance
