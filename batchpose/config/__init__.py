@@ -4,7 +4,8 @@ A pipeline YAML (``pipelines/*.yaml``) sets any subset of these fields; unknown 
 ``--set section.field=value`` overrides one field (the value is parsed as YAML).
 
 - :mod:`.rules`: :func:`knob`, a field's choices and bounds next to its default, and the one validator.
-- :mod:`.sections`: one dataclass per step of the method (mesh, render, features, ..., track, carry, depth, plane).
+- :mod:`.sections`: one dataclass per step of the method (mesh, render, features, ..., track, carry, depth);
+  :mod:`.plane`: the plane search's.
 - :mod:`.estimator`: :class:`EstimatorConfig` (the sections plus the fields that span them) and
   :func:`validate`, with the few rules that tie two fields together.
 - :mod:`.load`: YAML, ``--set`` overrides, dict to config and back, the config hash of cache keys.
@@ -21,6 +22,7 @@ from batchpose.config.load import (
     load_yaml,
     to_dict,
 )
+from batchpose.config.plane import PlaneConfig
 from batchpose.config.rules import knob
 from batchpose.config.sections import (
     CarryConfig,
@@ -30,7 +32,6 @@ from batchpose.config.sections import (
     GncConfig,
     MatchConfig,
     MeshConfig,
-    PlaneConfig,
     RefineConfig,
     RegionConfig,
     RenderConfig,

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from batchpose.config.plane import PlaneConfig
 from batchpose.config.rules import check_fields, knob
 from batchpose.config.sections import (
     CarryConfig,
@@ -15,7 +16,6 @@ from batchpose.config.sections import (
     GncConfig,
     MatchConfig,
     MeshConfig,
-    PlaneConfig,
     RefineConfig,
     RegionConfig,
     RenderConfig,
