@@ -239,7 +239,7 @@ def test_a_placement_is_scored_by_how_closely_the_frames_edges_follow_its_outlin
     def edge(image: np.ndarray, P: np.ndarray) -> float:
         judge = _Judge(image, np.zeros((480, 640), np.float32), none_found, np.full((480, 640), np.inf),
                        lambda P, K, w, h: r.render(m.content_hash, m.mesh, P, K, w, h, "lit"), K_SYN, target, 384,
-                       PlaneConfig(), _edge_credit(image, none_found))  # fmt: skip
+                       PlaneConfig(), CAM_FROM_WORLD[:3, 2], _edge_credit(image, none_found))  # fmt: skip
         return judge(P)[1].edge
 
     aside = T.copy()

@@ -34,8 +34,9 @@ it at a given pixel is at one distance only. For such an object:
    edge) 0.67-0.97 there, 0.3-0.8 one or two centimetres aside, 0.05 (90 % under 0.41) where the search
    places an object the frame does not show (reports/ACCURACY.md at 8fba8e3, "Session 27");
 4. **verify**: a placement is kept if at least ``min_visible`` of its silhouette is not hidden by a found
-   object, those pixels' mean colour log-odds is at least ``min_colour`` and exceeds the ring's around the
-   silhouette by ``min_contrast`` (it stands out from where it stands), the texture correlation is at
+   object (nor left out as an occluder's band), those pixels' mean colour log-odds is at least
+   ``min_colour`` and exceeds the ring's around the silhouette by ``min_contrast`` (it stands out from where
+   it stands), the texture correlation is at
    least ``min_match``, and — once finely refined — the edge score at least ``min_edge`` (not checked
    where the frame has no edges near the placement at all: a blurred frame). A finely refined placement
    whose edge score reaches ``edge_confirms`` may fail one of the two colour checks (``min_colour``,
@@ -43,6 +44,11 @@ it at a given pixel is at one distance only. For such an object:
    has its own pixels in the ring. With a weak SIFT pose, it must also match the frame better than that
    pose. The best refined placement that passes all but the edge checks (with ``edge_confirms``, one colour
    check may fail too) is refined in the fine steps and kept if it then passes every check (else the next).
+   With ``occluder_cuts``, where none passes, the refined placements are judged again with a lower band of
+   the silhouette (by height along the plane's up direction in the image) left out where the band's colours
+   are not the object's, each placement's best judgement counting, and steps 3-4 are repeated on them: an
+   object not asked for, standing nearer on the same surface, hides the lower part, and nothing else
+   explains its pixels.
 
 With tracking on, the next frame of a sequence refines the previous frame's placement first (step 3 only)
 and searches only when that no longer passes. reports/ACCURACY.md at 8fba8e3 ("Session 10", "Session 11") has the
@@ -126,13 +132,18 @@ class Target:
 
 class _Judge:
     """Scores poses against one frame: renders the mesh in a ``size``-pixel square around the object's centre
-    (far cheaper than the whole frame) and compares it with the frame where no found object hides it."""
+    (far cheaper than the whole frame) and compares it with the frame where no found object hides it, and,
+    with ``occluder_cuts``, also with a lower band of the silhouette left out (an object not asked for in front)."""
 
-    def __init__(self, rgb, odds, found_mask, occluder_depth, render, K, target: Target, size: int, conf, edges=None):
+    def __init__(
+        self, rgb, odds, found_mask, occluder_depth, render, K, target: Target, size: int, conf, up, edges=None
+    ):
         self.lab = cv2.cvtColor(rgb, cv2.COLOR_RGB2LAB)
         self.odds, self.found_mask, self.occluder_depth = odds, found_mask, occluder_depth
         self.render, self.K, self.target, self.size, self.conf = render, K, target, size, conf
+        self.up = up  # the plane's normal, camera frame
         self.edges = edges  # :func:`_edge_credit`'s maps, or None: edges not scored
+        self.cuts = False  # also judge with the lower bands of ``occluder_cuts`` left out
 
     def __call__(self, T: np.ndarray) -> tuple[float, Placed | None]:
         c = self.K @ (T[:3, :3] @ self.target.centre + T[:3, 3])
@@ -152,25 +163,56 @@ class _Judge:
         # A found object nearer than this one hides it; one behind it does not, but explains those pixels
         # (they are its texture): they are evidence neither way.
         seen = sil & ~(self.occluder_depth[win] < depth - HIDDEN_M) & ~self.found_mask[win]
-        k = int(seen.sum())
-        if k < 30 or k < self.conf.min_visible * n:
-            return -np.inf, None
         odds = self.odds[win]
-        colour = float(odds[seen].mean())
         ring = cv2.dilate(sil.astype(np.uint8), RING_KERNEL).astype(bool) & ~sil & ~self.found_mask[win]
-        contrast = colour - float(odds[ring].mean()) if ring.any() else colour
-        edge = 0.0
+        ring_odds = float(odds[ring].mean()) if ring.any() else 0.0
+        outline = sil & ~cv2.erode(sil.astype(np.uint8), OUTLINE_KERNEL).astype(bool)
+        edge_credit = None
         if self.edges is not None:
             credit, near_found, count = self.edges
-            if count[yb, xb] - count[ya, xb] - count[yb, xa] + count[ya, xa] < EDGE_MIN_PIXELS:
-                edge = np.nan  # no edges here at all (a blurred frame): the cue says nothing
+            if count[yb, xb] - count[ya, xb] - count[yb, xa] + count[ya, xa] >= EDGE_MIN_PIXELS:
+                outline &= ~near_found[win]
+                edge_credit = credit[win]
+        best: tuple[float, Placed | None] = (-np.inf, None)
+        for shown in [seen, *self._uncut(T, K, sil, seen, odds, (ya - y0, xa - x0))]:
+            k = int(shown.sum())
+            if k < 30 or k < self.conf.min_visible * n:
+                continue
+            colour = float(odds[shown].mean())
+            if edge_credit is None:  # no edges here at all (a blurred frame): the cue says nothing
+                edge = np.nan if self.edges is not None else 0.0
             else:
-                inner = cv2.erode(sil.astype(np.uint8), OUTLINE_KERNEL).astype(bool)
-                outline = sil & ~inner & seen & ~near_found[win]
-                edge = float(credit[win][outline].mean()) if outline.sum() >= EDGE_MIN_PIXELS else 0.0
-        placed = Placed(T, k / n, colour, texture_match(self.lab[win][seen], ren_rgb[crop][seen]), contrast, edge)
-        score = placed.match + self.conf.colour_weight * placed.colour
-        return score + (self.conf.edge_weight * edge if np.isfinite(edge) else 0.0), placed
+                rim = outline & shown
+                edge = float(edge_credit[rim].mean()) if rim.sum() >= EDGE_MIN_PIXELS else 0.0
+            match = texture_match(self.lab[win][shown], ren_rgb[crop][shown])
+            placed = Placed(T, k / n, colour, match, colour - ring_odds if ring.any() else colour, edge)
+            score = placed.match + self.conf.colour_weight * placed.colour
+            score += self.conf.edge_weight * edge if np.isfinite(edge) else 0.0
+            if score > best[0]:
+                best = (score, placed)
+        return best
+
+    def _uncut(self, T, K, sil, seen, odds, origin) -> list[np.ndarray]:
+        """``occluder_cuts``: the silhouette's seen pixels less each lower band (by height along the plane's up
+        direction in the image) whose colours are not the object's (mean log-odds under 0)."""
+        if not self.cuts or not self.conf.occluder_cuts or not sil.any():
+            return []
+        centre = T[:3, :3] @ self.target.centre + T[:3, 3]
+        a, b = K @ centre, K @ (centre + 0.05 * self.target.diameter_m * self.up)
+        up = b[:2] / b[2] - a[:2] / a[2]
+        if not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-6:
+            return []
+        up /= np.linalg.norm(up)
+        rows, cols = np.nonzero(sil)
+        height = np.full(sil.shape, np.inf, np.float32)
+        height[rows, cols] = (cols + origin[1]) * up[0] + (rows + origin[0]) * up[1]
+        low, high = float(height[rows, cols].min()), float(height[rows, cols].max())
+        out = []
+        for cut in self.conf.occluder_cuts:
+            band = seen & (height < low + cut * (high - low))
+            if band.any() and float(odds[band].mean()) < 0.0:
+                out.append(seen & ~band)
+        return out
 
 
 def search_plane(
@@ -201,12 +243,15 @@ def search_plane(
     odds[found_mask] = 0.0  # explained by the objects found there
     edges = _edge_credit(rgb, found_mask) if conf.edge_weight or conf.min_edge or conf.edge_confirms else None
 
-    def judge_around(poses: list[np.ndarray]) -> tuple[_Judge, float]:
-        """A judge rendering a square that holds the object at any of ``poses``, and the incumbent's score."""
+    def judge_around(poses: list[np.ndarray]) -> _Judge:
+        """A judge rendering a square that holds the object at any of ``poses`` (and the incumbent)."""
         span = max(_span_px(T, K, target) for T in [*poses, *([] if incumbent is None else [incumbent])])
         size = min(int(np.ceil((1.2 * span + 8) / 32)) * 32, 2 * max(rgb.shape[:2]))
-        judge = _Judge(rgb, odds, found_mask, occluder_depth, render, K, target, size, conf, edges)
-        return judge, -np.inf if incumbent is None else judge(incumbent)[0]
+        return _Judge(rgb, odds, found_mask, occluder_depth, render, K, target, size, conf, plane.normal, edges)
+
+    def floor_of(judge: _Judge) -> float:
+        """The incumbent's score: a placement must beat it."""
+        return -np.inf if incumbent is None else judge(incumbent)[0]
 
     def passes(score: float, p: Placed | None, floor: float, final: bool = True) -> bool:
         """The checks; the edge score only on a ``final`` (finely refined) placement: a centimetre off, the
@@ -222,17 +267,33 @@ def search_plane(
         # placements a centimetre off may miss the outline, so they go on to the fine steps.
         return cues == 1 and conf.edge_confirms > 0 and (not final or p.edge >= conf.edge_confirms)
 
+    def settle(judge: _Judge, refined: list[tuple[float, Placed | None]]) -> Placed | None:
+        """The best coarsely refined placement that passes all but the edge checks, refined in the fine
+        steps and kept if it then passes every check (else the next)."""
+        floor = floor_of(judge)
+        for _, placed in sorted((r for r in refined if passes(r[0], r[1], floor, final=False)), key=lambda r: -r[0]):
+            assert placed is not None  # passes() refused the None placements
+            best = _refine(placed.cam_from_model, plane, target, judge, FINE_STEPS)
+            if passes(*best, floor):
+                return best[1]
+        return None
+
+    # Whole silhouettes first; where nothing passes, the same placements judged again with an occluder's band
+    # left out (``occluder_cuts``: an object not asked for in front), which costs more a judgement.
+    cuts = (False, True) if conf.occluder_cuts else (False,)
     if previous is not None:
         previous = _onto(previous, plane, target)
-        judge, floor = judge_around([previous])
-        score, placed = _refine(previous, plane, target, judge, FINE_STEPS)
-        if passes(score, placed, floor):
-            assert placed is not None  # passes() refuses None
-            return dataclasses.replace(placed, followed=True)
+        judge = judge_around([previous])
+        for with_cuts in cuts:
+            judge.cuts = with_cuts
+            score, placed = _refine(previous, plane, target, judge, FINE_STEPS)
+            if passes(score, placed, floor_of(judge)):
+                assert placed is not None  # passes() refuses None
+                return dataclasses.replace(placed, followed=True)
     places = _places(odds, K, plane, target, conf.starts * CANDIDATES_PER_START, conf)
     if not places:
         return None
-    judge, floor = judge_around(places)
+    judge = judge_around(places)
     # The coarse search cannot tell a box on its front from one on its back (or a bottle turned half round):
     # the texture decides which of its placements are refined — the best at each place first, so that one
     # place whose colours fit in several ways does not take every start.
@@ -243,13 +304,10 @@ def search_plane(
     refined = [_refine(places[k], plane, target, judge, COARSE_STEPS) for k in starts]
     if conf.reface:
         refined += _refaced_starts(refined, plane, target, judge)
-    refined = sorted((r for r in refined if passes(*r, floor, final=False)), key=lambda r: -r[0])
-    for start in refined:
-        assert start[1] is not None  # passes() refused the None placements
-        best = _refine(start[1].cam_from_model, plane, target, judge, FINE_STEPS)
-        if passes(*best, floor):
-            return best[1]
-    return None
+    if (placed := settle(judge, refined)) is not None or len(cuts) == 1:
+        return placed
+    judge.cuts = True
+    return settle(judge, [judge(p.cam_from_model) for _, p in refined if p is not None])
 
 
 def _refaced_starts(refined: list, plane: Plane, target: Target, judge) -> list:
