@@ -253,31 +253,6 @@ def search_plane(
         """The incumbent's score: a placement must beat it."""
         return -np.inf if incumbent is None else judge(incumbent)[0]
 
-    def passes(score: float, p: Placed | None, floor: float, final: bool = True) -> bool:
-        """The checks; the edge score only on a ``final`` (finely refined) placement: a centimetre off, the
-        coarse steps' placements can miss the outline they find."""
-        if p is None or score <= floor or p.visible < conf.min_visible or p.match < conf.min_match:
-            return False
-        if final and p.edge < conf.min_edge:  # NaN: no edges to check with
-            return False
-        cues = (p.colour >= conf.min_colour) + (p.contrast >= conf.min_contrast)
-        if cues == 2:
-            return True
-        # Edges that follow the outline closely stand in for one of the two colour cues; the coarse steps'
-        # placements a centimetre off may miss the outline, so they go on to the fine steps.
-        return cues == 1 and conf.edge_confirms > 0 and (not final or p.edge >= conf.edge_confirms)
-
-    def settle(judge: _Judge, refined: list[tuple[float, Placed | None]]) -> Placed | None:
-        """The best coarsely refined placement that passes all but the edge checks, refined in the fine
-        steps and kept if it then passes every check (else the next)."""
-        floor = floor_of(judge)
-        for _, placed in sorted((r for r in refined if passes(r[0], r[1], floor, final=False)), key=lambda r: -r[0]):
-            assert placed is not None  # passes() refused the None placements
-            best = _refine(placed.cam_from_model, plane, target, judge, FINE_STEPS)
-            if passes(*best, floor):
-                return best[1]
-        return None
-
     # Whole silhouettes first; where nothing passes, the same placements judged again with an occluder's band
     # left out (``occluder_cuts``: an object not asked for in front), which costs more a judgement.
     cuts = (False, True) if conf.occluder_cuts else (False,)
@@ -287,7 +262,7 @@ def search_plane(
         for with_cuts in cuts:
             judge.cuts = with_cuts
             score, placed = _refine(previous, plane, target, judge, FINE_STEPS)
-            if passes(score, placed, floor_of(judge)):
+            if _passes(conf, score, placed, floor_of(judge)):
                 assert placed is not None  # passes() refuses None
                 return dataclasses.replace(placed, followed=True)
     places = _places(odds, K, plane, target, conf.starts * CANDIDATES_PER_START, conf)
@@ -304,10 +279,41 @@ def search_plane(
     refined = [_refine(places[k], plane, target, judge, COARSE_STEPS) for k in starts]
     if conf.reface:
         refined += _refaced_starts(refined, plane, target, judge)
-    if (placed := settle(judge, refined)) is not None or len(cuts) == 1:
+    if (placed := _settle(judge, refined, floor_of(judge), plane, target)) is not None or len(cuts) == 1:
         return placed
     judge.cuts = True
-    return settle(judge, [judge(p.cam_from_model) for _, p in refined if p is not None])
+    return _settle(
+        judge, [judge(p.cam_from_model) for _, p in refined if p is not None], floor_of(judge), plane, target
+    )
+
+
+def _passes(conf: PlaneConfig, score: float, p: Placed | None, floor: float, final: bool = True) -> bool:
+    """The checks; the edge score only on a ``final`` (finely refined) placement: a centimetre off, the coarse
+    steps' placements can miss the outline they find."""
+    if p is None or score <= floor or p.visible < conf.min_visible or p.match < conf.min_match:
+        return False
+    if final and p.edge < conf.min_edge:  # NaN: no edges to check with
+        return False
+    cues = (p.colour >= conf.min_colour) + (p.contrast >= conf.min_contrast)
+    if cues == 2:
+        return True
+    # Edges that follow the outline closely stand in for one of the two colour cues; the coarse steps'
+    # placements a centimetre off may miss the outline, so they go on to the fine steps.
+    return cues == 1 and conf.edge_confirms > 0 and (not final or p.edge >= conf.edge_confirms)
+
+
+def _settle(
+    judge: _Judge, refined: list[tuple[float, Placed | None]], floor: float, plane: Plane, target: Target
+) -> Placed | None:
+    """The best coarsely refined placement that passes all but the edge checks, refined in the fine steps and
+    kept if it then passes every check (else the next)."""
+    conf = judge.conf
+    for _, placed in sorted((r for r in refined if _passes(conf, *r, floor, final=False)), key=lambda r: -r[0]):
+        assert placed is not None  # _passes() refused the None placements
+        best = _refine(placed.cam_from_model, plane, target, judge, FINE_STEPS)
+        if _passes(conf, *best, floor):
+            return best[1]
+    return None
 
 
 def _refaced_starts(refined: list, plane: Plane, target: Target, judge) -> list:
