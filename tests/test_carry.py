@@ -179,3 +179,41 @@ def test_stage_rewrites_poses_and_skips_what_it_has_done(frames, tmp_path, cache
     pd.testing.assert_frame_equal(pd.read_parquet(out), df)
     assert carry_stage.main(dataclasses.replace(conf, carry=dataclasses.replace(conf.carry, enabled=False)),
                             inputs, tmp_path) == out  # fmt: skip
+
+
+def test_a_weak_pose_the_neighbours_contradict_gives_way_to_the_carried_one(frames, objects):
+    """``carry.over_weak``: frame 2's estimate is a weak ok pose (0.35 confident, untracked) turned half round
+    and 10 cm farther than the truth, scored 0.9: the pose carried from frame 1 scores higher, replaces it
+    (within 1 cm) and its reason names what the estimate had. Scored 1.0 (no carried pose can beat it), the
+    estimate's pose stays; with ``over_weak`` off, or without the verification score, no carry is tried."""
+    seq, _ = frames
+    first, second = seq[0], seq[1]
+    wrong = _truth(second).copy()
+    wrong[:3, :3] = wrong[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    wrong[:3, 3] *= (np.linalg.norm(wrong[:3, 3]) + 0.1) / np.linalg.norm(wrong[:3, 3])
+    weak = PoseRecord(
+        second.frame_id, NAME, "ok", "found with keypoints at contrast 0.01", second.scene_id, second.im_id,
+        second.stamp_ns, 9, wrong, 0.35,
+    )  # fmt: skip
+    weak.verification = 0.9
+    estimated = pd.concat([_estimated([first], set()), pd.DataFrame([weak.to_row()])], ignore_index=True)
+    conf = objects.conf
+    seqs = carry_stage.sequences(iter(seq[:2]), conf.track.max_gap_s)
+    gaps = carry_stage.plan(conf, estimated, seqs)
+    assert [(g.forward, g.weak) for g in gaps] == [([first.frame_id, second.frame_id], {second.frame_id: 0.9})]
+    rows = carry_stage.carry_gaps(objects, gaps, {f.frame_id: f for f in seq[:2]})
+    assert len(rows) == 1 and rows[0]["verification"] > 0.9
+    assert rows[0]["reason"] == (
+        f"carried forwards from {first.frame_id} (1 frame); the estimate: ok: found with keypoints at "
+        "contrast 0.01 (confidence 0.35, verification 0.90)"
+    )
+    assert _adds_mm(objects, second, rows[0]) < 10 < _adds_mm(objects, second, weak.to_row())
+
+    sure = estimated.assign(verification=lambda d: np.where(d["frame_id"] == second.frame_id, 1.0, np.nan))
+    gaps = carry_stage.plan(conf, sure, seqs)
+    assert carry_stage.carry_gaps(objects, gaps, {f.frame_id: f for f in seq[:2]}) == []
+    for off in (
+        dataclasses.replace(conf, carry=dataclasses.replace(conf.carry, over_weak=False)),
+        dataclasses.replace(conf, min_verification=0.0),
+    ):
+        assert carry_stage.plan(off, estimated, seqs) == []

@@ -25,17 +25,17 @@ from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose. The template libraries' cache
 # keys hash only the sections that make a library (io.library).
-DEFAULT_HASH = "016db8b3d06692d7"
-DEFAULT_LAYOUT_HASH = "0b17f33956b91953"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "c91f6eaf4bc7b28b"
+DEFAULT_LAYOUT_HASH = "3522661c12eb784f"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "a22b7c8468772ce9",
-    "gnc_pose.yaml": "016db8b3d06692d7",
-    "no_geom_weights.yaml": "1b9c98b853e8c530",
-    "oracle_roi.yaml": "36a19012ab8d262b",
-    "paper.yaml": "01265b3b62bc0033",
-    "ransac_only.yaml": "1769c33c38489884",
-    "rgbd.yaml": "69b54f80ed331bec",
-    "tp_ub.yaml": "f5377f2188d47a07",
+    "fast.yaml": "caa70c0902d3ccba",
+    "gnc_pose.yaml": "c91f6eaf4bc7b28b",
+    "no_geom_weights.yaml": "e05c6d42998c8eba",
+    "oracle_roi.yaml": "4995ba22c3f406b0",
+    "paper.yaml": "8d8cab513cb49b27",
+    "ransac_only.yaml": "0c8b2591096e7298",
+    "rgbd.yaml": "774843b1b0a0cd5d",
+    "tp_ub.yaml": "098f480370f9600b",
 }
 
 

@@ -422,6 +422,12 @@ class CarryConfig:
     the same). Each carried pose passes the tracker's checks against the rendered mesh frame by frame, so an
     object that has left the view or is covered is not carried into it. False: carry only into the statuses
     of an object looked for and not found (too_few_matches, pnp_failed, low_confidence) and ``hidden``."""
+    over_weak: bool = True
+    """Also carry into pairs whose estimate is a weak ok pose: untracked, under ``min_confidence`` here (a
+    retry's or a search's pose that could not start a carry itself). The carried pose replaces it only where
+    the verification score prefers it (``min_verification`` > 0: without the score nothing is compared), so
+    a weak pose that disagrees with the confident ones of the frames beside it (a can found upside down and
+    a can's height away by the lowest-contrast retry) gives way to the pose they carry in."""
 
 
 @dataclass(frozen=True)

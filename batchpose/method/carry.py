@@ -16,6 +16,9 @@ order. Every step is checked as tracking checks a refreshed track, then as a wea
 4. **the weak-pose check** (``verify_below``, :func:`~batchpose.method.verify.looks_wrong`) when it is
    under ``verify_below``, over the pixels the frame's other poses do not hide.
 
+In the frames the caller names (``scored``: where the estimate has a weak pose, ``carry.over_weak``) the
+carried pose also gets its verification score (:mod:`batchpose.method.score`), for the caller to compare.
+
 The first step that fails ends the carry: the frame keeps its record, and so do the frames beyond it.
 """
 
@@ -34,7 +37,7 @@ from batchpose.method.estimator import working_size
 from batchpose.method.features import to_gray
 from batchpose.method.objects import Objects
 from batchpose.method.records import confidence, pose_of, to_full_size
-from batchpose.method.score import FrameEdges
+from batchpose.method.score import FrameEdges, comparisons
 from batchpose.method.track import Track, follow_all
 from batchpose.method.tracked import hiders, refresh, seed_track
 from batchpose.method.verify import looks_wrong
@@ -81,7 +84,14 @@ class Carried:
     stopped: str
 
 
-def carry(objects: Objects, name: str, views: list[View], start: PoseRecord, max_steps: int) -> Carried:
+def carry(
+    objects: Objects,
+    name: str,
+    views: list[View],
+    start: PoseRecord,
+    max_steps: int,
+    scored: frozenset[str] = frozenset(),
+) -> Carried:
     """Follow ``start``, an ok pose of ``name`` in ``views[0]``, through ``views[1:]`` in the order given
     (the frames after it, or the frames before it in reverse order) as far as the checks of the module
     docstring pass, at most ``max_steps`` frames, and on from a carried pose only while it is at least
@@ -93,6 +103,7 @@ def carry(objects: Objects, name: str, views: list[View], start: PoseRecord, max
         views: consecutive frames (:func:`view_of`), each the next of the one before in carrying order.
         start: its pose in ``views[0]`` (cam_from_model at any image size: poses are metric).
         max_steps: most frames carried into.
+        scored: ids of the frames whose carried pose gets its verification score.
     """
     if not objects.can_render(name) or len(views) < 2:
         return Carried([], "no mesh to follow" if len(views) > 1 else "")
@@ -107,7 +118,7 @@ def carry(objects: Objects, name: str, views: list[View], start: PoseRecord, max
     t_seed = time.perf_counter() - t0
     out: list[PoseRecord] = []
     for prev, view in zip(views[:max_steps], views[1 : max_steps + 1], strict=False):
-        rec, track, why = _step(objects, name, prev, view, track)
+        rec, track, why = _step(objects, name, prev, view, track, view.frame.frame_id in scored)
         if rec is None or track is None:
             return Carried(out, f"{view.frame.frame_id}: {why}")
         rec.timings["seed"] = rec.timings.get("seed", 0.0) + t_seed
@@ -121,10 +132,11 @@ def carry(objects: Objects, name: str, views: list[View], start: PoseRecord, max
 
 
 def _step(
-    objects: Objects, name: str, prev: View, view: View, track: Track
+    objects: Objects, name: str, prev: View, view: View, track: Track, score: bool = False
 ) -> tuple[PoseRecord | None, Track | None, str]:
     """One frame of a carry: the track followed from ``prev`` into ``view`` and checked (module docstring):
-    (the frame's record, the track to follow on, "") or (None, None, why it failed)."""
+    (the frame's record, with its verification score if ``score``; the track to follow on; "") or (None,
+    None, why it failed)."""
     conf, cam = objects.conf, view.frame.camera
     t0 = time.perf_counter()
     behind = _hidden(objects, name, track.cam_from_model, prev)
@@ -159,6 +171,12 @@ def _step(
     rec.timings = {"track": t_follow, "seed": time.perf_counter() - t0}
     if why is not None:
         return None, None, why
+    if score:
+        t0 = time.perf_counter()
+        others = [PoseRecord(view.frame.frame_id, n, "ok", cam_from_model=T) for n, T in view.others.items()]
+        found = comparisons(objects, view.frame, view.rgb, [rec, *others], [rec])[id(rec)]
+        rec.verification = found.score() if found is not None else 0.0
+        rec.timings["verify"] = time.perf_counter() - t0
     if not np.allclose(view.scale, 1.0):
         to_full_size([rec], view.scale)
     return rec, moved.track, ""

@@ -104,6 +104,8 @@ class Gap:
             first.
         starts: the poses the carries start from (forward's, then backward's).
         was: frame_id -> "status: reason" of the pair the estimate made there.
+        weak: frame_id -> the verification score of the estimate's weak ok pose there (``carry.over_weak``):
+            a carried pose replaces it only when it scores higher.
         others: frame_id -> obj_name -> (4, 4) the other objects' ok poses in the gap's frames and its ends.
     """
 
@@ -112,6 +114,7 @@ class Gap:
     backward: list[str] = field(default_factory=list)
     starts: list[Start] = field(default_factory=list)
     was: dict[str, str] = field(default_factory=dict)
+    weak: dict[str, float] = field(default_factory=dict)
     others: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
     def key(self) -> str:
@@ -122,6 +125,7 @@ class Gap:
             "b": self.backward,
             "s": [(s.frame_id, np.round(s.cam_from_model, 9).tolist(), round(s.confidence, 9)) for s in self.starts],
             "o": {k: {n: np.round(T, 9).tolist() for n, T in v.items()} for k, v in self.others.items()},
+            "w": {k: round(v, 9) for k, v in self.weak.items()},
         }
         return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -134,6 +138,17 @@ def carry_statuses(conf: EstimatorConfig) -> tuple[str, ...]:
     """The statuses a pose is carried into: an object looked for and not found (``NOT_FOUND``), one tracking
     left ``hidden``, and ``absent`` with ``carry.into_absent``."""
     return (*NOT_FOUND, "hidden", *(("absent",) if conf.carry.into_absent else ()))
+
+
+def weak_score(conf: EstimatorConfig, row: dict) -> float | None:
+    """``carry.over_weak``: the verification score of the row's pose when it is a weak ok one (untracked, under
+    ``carry.min_confidence``, scored); None otherwise."""
+    if not conf.carry.over_weak or conf.min_verification <= 0 or row["status"] != "ok":
+        return None
+    if bool(row.get("tracked")) or bool(row.get("carried")) or float(row["confidence"]) >= conf.carry.min_confidence:
+        return None
+    v = float(row.get("verification", np.nan))
+    return v if np.isfinite(v) else None
 
 
 def sequences(frames: Iterable[Frame], max_gap_s: float) -> list[list[str]]:
@@ -150,9 +165,9 @@ def sequences(frames: Iterable[Frame], max_gap_s: float) -> list[list[str]]:
 
 
 def plan(conf: EstimatorConfig, estimated: pd.DataFrame, seqs: list[list[str]]) -> list[Gap]:
-    """Every gap (see :class:`Gap`) of every object in the sequences ``seqs`` (:func:`sequences`) with a
-    confident ok pose (``carry.min_confidence``) at either end, from the estimate's rows; in the order of
-    their last frame in the log."""
+    """Every gap (see :class:`Gap`: pairs without a pose, or with a weak one, :func:`weak_score`) of every object
+    in the sequences ``seqs`` (:func:`sequences`) with a confident ok pose (``carry.min_confidence``) at either
+    end, from the estimate's rows; in the order of their last frame in the log."""
     cc, into = conf.carry, set(carry_statuses(conf))
     rows = {(r["frame_id"], r["obj_name"]): r for r in estimated.to_dict("records")}
     ok_poses: dict[str, dict[str, np.ndarray]] = {}
@@ -160,6 +175,9 @@ def plan(conf: EstimatorConfig, estimated: pd.DataFrame, seqs: list[list[str]]) 
         pose = row_cam_from_model(r) if r["status"] == "ok" else None
         if pose is not None:
             ok_poses.setdefault(fid, {})[name] = pose
+
+    def opens(r: dict | None) -> bool:
+        return r is not None and (r["status"] in into or weak_score(conf, r) is not None)
 
     def confident(fid: str, name: str) -> Start | None:
         pose = ok_poses.get(fid, {}).get(name)
@@ -173,16 +191,17 @@ def plan(conf: EstimatorConfig, estimated: pd.DataFrame, seqs: list[list[str]]) 
         for seq in seqs:
             i = 0
             while i < len(seq):
-                r = rows.get((seq[i], name))
-                if r is None or r["status"] not in into:
+                if not opens(rows.get((seq[i], name))):
                     i += 1
                     continue
                 j = i
-                while j + 1 < len(seq) and rows.get((seq[j + 1], name), {}).get("status") in into:
+                while j + 1 < len(seq) and opens(rows.get((seq[j + 1], name))):
                     j += 1
                 gap = _gap(name, seq, i, j, confident, cc.max_steps)
                 if gap is not None:
                     gap.was = {f: _was(rows[(f, name)]) for f in seq[i : j + 1]}
+                    scores = {f: weak_score(conf, rows[(f, name)]) for f in seq[i : j + 1]}
+                    gap.weak = {f: v for f, v in scores.items() if v is not None}
                     ends = sorted({*gap.forward, *gap.backward})
                     gap.others = {k: {n: T for n, T in ok_poses.get(k, {}).items() if n != name} for k in ends}
                     gaps.append(gap)
@@ -207,7 +226,9 @@ def _gap(name: str, seq: list[str], i: int, j: int, confident, max_steps: int) -
 
 
 def _was(row: dict) -> str:
-    return f"{row['status']}: {row['reason']}" if row["reason"] else str(row["status"])
+    was = f"{row['status']}: {row['reason']}" if row["reason"] else str(row["status"])
+    v = float(row.get("verification", np.nan))
+    return f"{was} (confidence {float(row['confidence']):.2f}, verification {v:.2f})" if row["status"] == "ok" else was
 
 
 @dataclass(frozen=True)
@@ -257,13 +278,15 @@ def carry_gaps(objects: Objects, gaps: list[Gap], frames: Mapping[str, Frame]) -
                 continue
             pose = PoseRecord(start.frame_id, gap.obj_name, "ok", cam_from_model=start.cam_from_model,
                               confidence=start.confidence)  # fmt: skip
-            found = carry(objects, gap.obj_name, seen, pose, cc.max_steps)
+            found = carry(objects, gap.obj_name, seen, pose, cc.max_steps, scored=frozenset(gap.weak))
             for k, rec in enumerate(found.records, 1):
+                reached.add(rec.frame_id)
+                if rec.frame_id in gap.weak and not rec.verification > gap.weak[rec.frame_id]:
+                    continue  # the estimate's weak pose looks at least as much like the frame: it stays
                 rec.reason = (
                     f"carried {direction} from {start.frame_id} ({k} frame{'s' if k > 1 else ''}); "
                     f"the estimate: {gap.was[rec.frame_id]}"
                 )
-                reached.add(rec.frame_id)
                 rows.append(rec.to_row())
             if found.stopped:
                 log.debug("%s %s %s: %s", gap.obj_name, direction, start.frame_id, found.stopped)
