@@ -28,14 +28,22 @@ sphere, undersides included.
 ``--real RUN`` (a finished ``batchpose run`` of ``data_manifest/ycbv_dev.yaml``) the objects with real
 frames are compared with their scores on the real frames of that run.
 
-The frames are written as a BOP data set with ground truth (im_ids two apart, so no frame is tracked
-from another) and run through ``batchpose run``; the table gives ADD-S / ADD AUC per object, marking the
-objects that are in ycbv_dev, and how many poses were reported ok but are wrong (ADD-S > 0.1 diameter).
+Frames alone or in sequences (``--sequence L``): by default each frame stands alone (a background drawn
+anew, im_ids two apart, so no frame is tracked from another). With ``--sequence L`` an object's frames come
+in runs of ``L`` consecutive frames of one real video, the object standing at one place in the scene
+throughout the run (moved with the camera, whose motion the video's ground truth gives), with one colour
+gain, scale error and occluding piece a run and the noise and motion blur drawn per frame; im_ids are
+consecutive within a run, so the pipeline tracks and carries the object through it as it does through a
+recorded log (ycbv_dev's real frames are such sequences).
+
+The frames are written as a BOP data set with ground truth and run through ``batchpose run``; the table
+gives ADD-S / ADD AUC per object, marking the objects that are in ycbv_dev, and how many poses were reported
+ok but are wrong (ADD-S > 0.1 diameter).
 
 Usage:
     .venv/bin/python benchmarks/heldout.py [--frames 8] [--objects NAME ...] [--pipeline gnc_pose]
         [--keep DIR] [--cache DIR] [--seed 0] [--set KEY=VALUE ...] [--scale-error 0.5 3.7]
-        [--motion-blur 4] [--views table|any] [--elevation 15 65] [--real RUN]
+        [--motion-blur 4] [--views table|any] [--elevation 15 65] [--sequence 1] [--real RUN]
 """
 
 from __future__ import annotations
@@ -128,11 +136,13 @@ def compose(
     bg_depth: np.ndarray,
     depth_rng,
     blur_px: float = 0.0,
+    noise_rng: np.random.Generator | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The render over ``bg`` with a soft edge, colour gain, optional occluding patch, blur (a motion blur
     ``blur_px`` long in a direction from ``depth_rng``, then defocus) and noise; and the depth image a sensor
     would give of that (metres, 0: no reading; its noise from ``depth_rng``, so that the colour images are
-    those of earlier versions of this script for the same seed)."""
+    those of earlier versions of this script for the same seed). ``noise_rng``: the colour noise's draws
+    (default ``rng``'s, after the others)."""
     on = depth > 0
     z = np.where(on, depth, bg_depth).astype(np.float32)
     z = np.where(on, z + depth_rng.normal(0.0, 0.002, z.shape) * z**2, z)
@@ -158,7 +168,7 @@ def compose(
     if blur_px >= 1.0:
         out = cv2.filter2D(out, -1, motion_kernel(blur_px, depth_rng.uniform(0.0, np.pi)))
     out = cv2.GaussianBlur(out, (0, 0), rng.uniform(0.5, 1.2))
-    out += rng.normal(0.0, 3.0, out.shape)
+    out += (rng if noise_rng is None else noise_rng).normal(0.0, 3.0, out.shape)
     return np.clip(out, 0, 255).astype(np.uint8), z
 
 
@@ -181,9 +191,11 @@ def generate(
     motion_blur: float = 4.0,
     views: str = "table",
     elevation=(15.0, 65.0),
+    sequence: int = 1,
 ) -> Path:
     """Write the BOP data set and its manifest; returns the manifest path. ``scale_error`` (percent, low and
-    high), ``motion_blur`` (px), ``views`` and ``elevation`` (degrees): see the module docstring."""
+    high), ``motion_blur`` (px), ``views``, ``elevation`` (degrees) and ``sequence``: see the module
+    docstring."""
     source = YcbvFrameSource(DEV)
     bgs = [(f, decode_image(f), decode_depth(f)) for f in source if f.scene_id < 10000]  # real frames only
     renderer = get_renderer()
@@ -198,6 +210,14 @@ def generate(
         (scene / "rgb").mkdir(parents=True, exist_ok=True)
         (scene / "depth").mkdir(parents=True, exist_ok=True)
         cams, gts = {}, {}
+        if sequence > 1:
+            for r, start in enumerate(range(0, n, sequence)):
+                run = _Run(k, r, min(sequence, n - start), seed, scale_error, motion_blur)
+                pose = (lambda g, st=stable: table_rotation(g, st, elevation)[0]) if stable is not None else None
+                run.write(scene, cams, gts, model, renderer, usable, pose, r * (sequence + 2))
+            (scene / "scene_camera.json").write_text(json.dumps(cams))
+            (scene / "scene_gt.json").write_text(json.dumps(gts))
+            continue
         for i in range(n):
             f, bg, bg_depth = usable[rng.integers(len(usable))]
             K, w, h = f.camera.K, f.camera.width, f.camera.height
@@ -216,14 +236,7 @@ def generate(
                     break
             occluder = usable[rng.integers(len(usable))][1] if i % 2 else None  # not a piece showing the object
             img, z = compose(bg, rgb, depth, occluder, rng, bg_depth, np.random.default_rng([seed, k, i]), blur_px)
-            im_id = 2 * i
-            cv2.imwrite(str(scene / "rgb" / f"{im_id:06d}.jpg"), img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
-            tenths_mm = np.clip(np.rint(z * 10000.0), 0, 65535).astype(np.uint16)
-            cv2.imwrite(str(scene / "depth" / f"{im_id:06d}.png"), tenths_mm)
-            cams[str(im_id)] = {"cam_K": K.ravel().tolist(), "depth_scale": 0.1}
-            gts[str(im_id)] = [
-                {"obj_id": k, "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] * 1000).tolist()}
-            ]
+            _write(scene, 2 * i, img, z, K, T, k, cams, gts)
         (scene / "scene_camera.json").write_text(json.dumps(cams))
         (scene / "scene_gt.json").write_text(json.dumps(gts))
     manifest = out / "heldout.yaml"
@@ -236,6 +249,63 @@ def generate(
         "targets: annotations\n"
     )
     return manifest
+
+
+class _Run:
+    """``--sequence``: object ``k``'s ``r``-th run of ``length`` consecutive frames of one real video."""
+
+    def __init__(self, k: int, r: int, length: int, seed: int, scale_error, motion_blur: float) -> None:
+        self.k, self.r, self.length, self.seed, self.motion_blur = k, r, length, seed, motion_blur
+        self.rng = np.random.default_rng([seed, k, r, 11])  # the run's draws: video, place, scale, occluder
+        self.scale = 1.0 - 0.01 * self.rng.uniform(*scale_error)
+
+    def write(self, scene: Path, cams: dict, gts: dict, model, renderer, usable: list, pose, first_id: int) -> None:
+        """Render the run into a stretch of a video that does not show the object (``usable``: background
+        frames), ``pose``: callable(rng) -> camera-from-model rotation seen along the optical axis (None: any
+        view); its frames get im_ids ``first_id``, ``first_id + 1``, ..."""
+        rng, n = self.rng, self.length
+        videos: dict[int, list] = {}
+        for f, img, d in sorted(usable, key=lambda u: (u[0].scene_id, u[0].im_id)):
+            videos.setdefault(f.scene_id, []).append((f, img, d))
+        stretches = [v[i : i + n] for v in videos.values() for i in range(len(v) - n + 1)]
+        stretches = [s for s in stretches if all(b[0].im_id == a[0].im_id + 1 for a, b in zip(s, s[1:], strict=False))]
+        frames = stretches[rng.integers(len(stretches))]
+        f0 = frames[0][0]
+        K, w, h = f0.camera.K, f0.camera.width, f0.camera.height
+        shown_K = K.copy()
+        shown_K[:2, :2] *= self.scale
+        for _ in range(20):  # a pose whose render in the first frame stays inside the image
+            if pose is None:
+                T0 = place(random_rotation(rng), model.center_m, K, w, h, rng)
+            else:
+                T0 = place(pose(rng), model.center_m, K, w, h, rng, on_ray=True)
+            _, depth = renderer.render(model.content_hash, model.mesh, T0, shown_K, w, h, "lit")
+            ys, xs = np.nonzero(depth > 0)
+            if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
+                break
+        # The camera's motion from the video's ground truth: every object of a YCB-Video scene stands still.
+        ref = f0.gt[0].obj_name
+        world_from_cam0 = np.linalg.inv(next(g.cam_from_model for g in f0.gt if g.obj_name == ref))
+        occluder = usable[rng.integers(len(usable))][1] if self.r % 2 else None
+        for j, (f, bg, bg_depth) in enumerate(frames):
+            T = next(g.cam_from_model for g in f.gt if g.obj_name == ref) @ world_from_cam0 @ T0
+            rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit")
+            each = np.random.default_rng([self.seed, self.k, self.r, j, 13])
+            blur_px = each.uniform(0.0, self.motion_blur)
+            if not (depth > 0).any():
+                continue  # the camera has turned away from it
+            look = np.random.default_rng([self.seed, self.k, self.r, 12])  # the same gain and occluder each frame
+            img, z = compose(bg, rgb, depth, occluder, look, bg_depth, each, blur_px, noise_rng=each)
+            _write(scene, first_id + j, img, z, K, T, self.k, cams, gts)
+
+
+def _write(scene: Path, im_id: int, img: np.ndarray, z: np.ndarray, K, T, k: int, cams: dict, gts: dict) -> None:
+    """One frame of the BOP data set: its colour and depth images, camera and ground truth."""
+    cv2.imwrite(str(scene / "rgb" / f"{im_id:06d}.jpg"), img[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])
+    tenths_mm = np.clip(np.rint(z * 10000.0), 0, 65535).astype(np.uint16)
+    cv2.imwrite(str(scene / "depth" / f"{im_id:06d}.png"), tenths_mm)
+    cams[str(im_id)] = {"cam_K": K.ravel().tolist(), "depth_scale": 0.1}
+    gts[str(im_id)] = [{"obj_id": k, "cam_R_m2c": T[:3, :3].ravel().tolist(), "cam_t_m2c": (T[:3, 3] * 1000).tolist()}]
 
 
 def run_options(ap: argparse.ArgumentParser) -> None:
@@ -309,6 +379,9 @@ def main() -> int:
         metavar=("LO", "HI"),
         help="--views table: the camera this many degrees above the table (default 15 65)",
     )
+    ap.add_argument(
+        "--sequence", type=int, default=1, metavar="L", help="frames in runs of L consecutive ones (default 1: alone)"
+    )
     ap.add_argument("--real", type=Path, help="a ycbv_dev run: compare with its real frames' scores")
     run_options(ap)
     args = ap.parse_args()
@@ -321,7 +394,7 @@ def main() -> int:
     out = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="batchpose_heldout_"))
     print(
         f"# heldout: {machine()}; code {code_version()}; {len(objects)} objects x {args.frames} frames, "
-        f"views {args.views} -> {out}"
+        f"views {args.views}, sequences of {args.sequence} -> {out}"
     )
     manifest = generate(
         out,
@@ -332,6 +405,7 @@ def main() -> int:
         args.motion_blur,
         args.views,
         tuple(args.elevation),
+        args.sequence,
     )
     run_pipeline(manifest, out / "run", args)
     summary = pd.read_csv(out / "run" / "report" / "summary.csv")

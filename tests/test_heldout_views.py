@@ -4,12 +4,14 @@ at it from within the elevation range above the table, wherever in the image the
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.mesh import load_mesh
 from batchpose.method.support import stable_faces
 from tests.conftest import CRACKER, K_SYN
@@ -48,3 +50,42 @@ def test_table_views_rest_the_object_and_look_down_at_it(heldout):
     assert 15.0 - 1e-6 <= min(elevations) and max(elevations) <= 65.0 + 1e-6
     assert max(elevations) - min(elevations) > 30.0  # drawn from the range, not one view
     assert len(faces) >= 2  # more than one resting face
+
+
+def test_sequence_runs_keep_the_object_still_in_the_scene(heldout, tmp_path):
+    """``--sequence 3``: an object's frames come in runs of consecutive real frames of one video (im_ids
+    consecutive within a run, a gap between runs), and the object stays at one place in the scene: its pose
+    relative to a real object of the video is the same in every frame of a run."""
+    if not heldout.DEV.is_dir() or not heldout.MODELS.is_dir():
+        pytest.skip(f"shared YCB-Video data not at {heldout.DATA}")
+    heldout.generate(tmp_path, ["040_large_marker"], 6, 0, sequence=3)
+    gt = json.loads((tmp_path / "data" / "000001" / "scene_gt.json").read_text())
+    assert sorted(map(int, gt)) == [0, 1, 2, 5, 6, 7]
+    poses = {int(i): _pose(v[0]) for i, v in gt.items()}
+    # Which real frames were used is not written; find them by the pose the runs' first frames must explain.
+    real = {(f.scene_id, f.im_id): f for f in YcbvFrameSource(heldout.DEV) if f.scene_id < 10000}
+    for first in (0, 5):
+        run = [poses[first + j] for j in range(3)]
+        moves = [run[j] @ np.linalg.inv(run[0]) for j in (1, 2)]  # the camera's motion seen from the object
+        assert any(
+            all(np.allclose(m, _cam_motion(real, key, j), atol=1e-6) for j, m in zip((1, 2), moves, strict=True))
+            for key in real
+        )
+        assert all(np.linalg.norm(m[:3, 3]) < 0.05 for m in moves)  # a hand-held camera's few millimetres
+
+
+def _pose(g: dict) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.reshape(g["cam_R_m2c"], (3, 3))
+    T[:3, 3] = np.asarray(g["cam_t_m2c"]) / 1000.0
+    return T
+
+
+def _cam_motion(real: dict, key: tuple[int, int], j: int) -> np.ndarray:
+    """The camera's motion from frame ``key`` to the frame ``j`` later, by the video's first annotated object
+    (the identity when that frame is not there)."""
+    later = real.get((key[0], key[1] + j))
+    if later is None:
+        return np.full((4, 4), np.nan)
+    a, b = real[key].gt[0], next((g for g in later.gt if g.obj_name == real[key].gt[0].obj_name), None)
+    return np.full((4, 4), np.nan) if b is None else b.cam_from_model @ np.linalg.inv(a.cam_from_model)
