@@ -185,7 +185,7 @@ class _Judge:
                 rim = outline & shown
                 edge = float(edge_credit[rim].mean()) if rim.sum() >= EDGE_MIN_PIXELS else 0.0
             match = texture_match(self.lab[win][shown], ren_rgb[crop][shown])
-            placed = Placed(T, k / n, colour, match, colour - ring_odds if ring.any() else colour, edge)
+            placed = Placed(T, k / n, colour, match, colour - ring_odds, edge)  # ring_odds 0 without a ring
             score = placed.match + self.conf.colour_weight * placed.colour
             score += self.conf.edge_weight * edge if np.isfinite(edge) else 0.0
             if score > best[0]:
