@@ -71,7 +71,15 @@ from batchpose.report.metrics import vocap_auc  # noqa: E402
 DATA = REPO.parent / "shared" / "data"
 MODELS = DATA / "ycb_models"
 DEV = DATA / "ycbv_dev"
-DEV_OBJECTS = ("002_master_chef_can", "003_cracker_box", "004_sugar_box", "006_mustard_bottle", "009_gelatin_box")
+DEV_OBJECTS = (
+    "002_master_chef_can",
+    "003_cracker_box",
+    "004_sugar_box",
+    "006_mustard_bottle",
+    "007_tuna_fish_can",
+    "009_gelatin_box",
+    "010_potted_meat_can",
+)
 
 
 def random_rotation(rng: np.random.Generator, max_roll_deg: float = 30.0) -> np.ndarray:
