@@ -32,9 +32,9 @@ Frames alone or in sequences (``--sequence L``): by default each frame stands al
 anew, im_ids two apart, so no frame is tracked from another). With ``--sequence L`` an object's frames come
 in runs of ``L`` consecutive frames of one real video, the object standing at one place in the scene
 throughout the run (moved with the camera, whose motion the video's ground truth gives), with one colour
-gain, scale error and occluding piece a run and the noise and motion blur drawn per frame; im_ids are
-consecutive within a run, so the pipeline tracks and carries the object through it as it does through a
-recorded log (ycbv_dev's real frames are such sequences).
+gain, scale error, occluding piece and motion-blur direction a run, and the noise and the blur's length
+drawn per frame; im_ids are consecutive within a run, so the pipeline tracks and carries the object through
+it as it does through a recorded log (ycbv_dev's real frames are such sequences).
 
 The frames are written as a BOP data set with ground truth and run through ``batchpose run``; the table
 gives ADD-S / ADD AUC per object, marking the objects that are in ycbv_dev, and how many poses were reported
@@ -145,12 +145,14 @@ def compose(
     depth_rng,
     blur_px: float = 0.0,
     noise_rng: np.random.Generator | None = None,
+    blur_angle: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The render over ``bg`` with a soft edge, colour gain, optional occluding patch, blur (a motion blur
     ``blur_px`` long in a direction from ``depth_rng``, then defocus) and noise; and the depth image a sensor
     would give of that (metres, 0: no reading; its noise from ``depth_rng``, so that the colour images are
     those of earlier versions of this script for the same seed). ``noise_rng``: the colour noise's draws
-    (default ``rng``'s, after the others)."""
+    (default ``rng``'s, after the others); ``blur_angle``: the motion blur's direction (radians; default a
+    draw from ``depth_rng``)."""
     on = depth > 0
     z = np.where(on, depth, bg_depth).astype(np.float32)
     z = np.where(on, z + depth_rng.normal(0.0, 0.002, z.shape) * z**2, z)
@@ -174,7 +176,8 @@ def compose(
         out[y0:y1, x0:x1] = occluder[y0:y1, x0:x1]
         z[y0:y1, x0:x1] = float(depth[on].min()) - 0.1
     if blur_px >= 1.0:
-        out = cv2.filter2D(out, -1, motion_kernel(blur_px, depth_rng.uniform(0.0, np.pi)))
+        angle = depth_rng.uniform(0.0, np.pi) if blur_angle is None else blur_angle
+        out = cv2.filter2D(out, -1, motion_kernel(blur_px, angle))
     out = cv2.GaussianBlur(out, (0, 0), rng.uniform(0.5, 1.2))
     out += (rng if noise_rng is None else noise_rng).normal(0.0, 3.0, out.shape)
     return np.clip(out, 0, 255).astype(np.uint8), z
@@ -266,6 +269,7 @@ class _Run:
         self.k, self.r, self.length, self.seed, self.motion_blur = k, r, length, seed, motion_blur
         self.rng = np.random.default_rng([seed, k, r, 11])  # the run's draws: video, place, scale, occluder
         self.scale = 1.0 - 0.01 * self.rng.uniform(*scale_error)
+        self.blur_angle = self.rng.uniform(0.0, np.pi)  # a hand-held camera sways one way for a while
 
     def write(self, scene: Path, cams: dict, gts: dict, model, renderer, usable: list, pose, first_id: int) -> None:
         """Render the run into a stretch of a video that does not show the object (``usable``: background
@@ -303,7 +307,7 @@ class _Run:
             if not (depth > 0).any():
                 continue  # the camera has turned away from it
             look = np.random.default_rng([self.seed, self.k, self.r, 12])  # the same gain and occluder each frame
-            img, z = compose(bg, rgb, depth, occluder, look, bg_depth, each, blur_px, noise_rng=each)
+            img, z = compose(bg, rgb, depth, occluder, look, bg_depth, each, blur_px, each, self.blur_angle)
             _write(scene, first_id + j, img, z, K, T, self.k, cams, gts)
 
 
