@@ -353,6 +353,10 @@ class TrackConfig:
     looking only near each point, cannot see."""
     render_search_px: int = knob(3, ge=1)
     """How far from its tracked position a point's rendered patch is looked for."""
+    depth_prior: float = knob(0.0, ge=0)
+    """Each followed pose is solved with its change of depth since the previous frame costing as much as
+    this many points would if the points' rim moved as far in the image as that change makes it grow or
+    shrink (0: no prior). A few points along a thin object do not pin the depth."""
     fb_max_px: float = 1.0
     """A point survives a frame when optical flow back from its new position lands this close to the old."""
     reproj_px: float = 3.0

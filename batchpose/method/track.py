@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 
 from batchpose.config import TrackConfig
 from batchpose.method.templates import lift_keypoints
@@ -158,6 +159,32 @@ def _solve_lm(X, xy, T, K, dist, conf: TrackConfig, n_needed: float):
     if out[2, 3] <= 0:
         return None
     return out, keep, float(np.median(_residuals(X[keep], xy[keep], rvec, tvec, K, dist)))
+
+
+def _hold_depth(X, xy, T, previous, K, dist, weight: float) -> np.ndarray:
+    """``track.depth_prior``: the pose ``T`` solved again with the change of the points' depth since
+    ``previous`` costing as much as ``weight`` points would if the points' rim moved as far in the image as
+    that change makes it grow or shrink. Where the points pin the depth (many, spread out) it moves the pose
+    by a fraction of a pixel; where they do not (a few points along a thin object, lifted at a pose a little
+    off), it keeps the track from sliding along the line of sight."""
+    c = X.mean(axis=0)
+    rim_px = 0.5 * (K[0, 0] + K[1, 1]) * float(np.linalg.norm(X - c, axis=1).max())
+    z0 = float((previous[:3, :3] @ c + previous[:3, 3])[2])
+    if z0 <= 0 or rim_px <= 0:
+        return T
+    k = np.sqrt(weight) * rim_px / z0**2
+
+    def residuals(p: np.ndarray) -> np.ndarray:
+        proj = cv2.projectPoints(X, p[:3], p[3:], K, dist)[0].reshape(-1, 2)
+        z = float((cv2.Rodrigues(p[:3])[0] @ c + p[3:])[2])
+        return np.r_[(proj - xy).ravel(), k * (z - z0)]
+
+    start = np.r_[cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]]
+    p = least_squares(residuals, start, method="lm", x_scale="jac").x
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(p[:3])[0]
+    out[:3, 3] = p[3:]
+    return out if out[2, 3] > 0 else T
 
 
 def _lk_params(conf: TrackConfig) -> dict:
@@ -352,6 +379,8 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seed
     if solved is None:
         return None
     T, keep, med = solved
+    if conf.depth_prior > 0:
+        T = _hold_depth(X[keep], xy[keep], T, track.cam_from_model, K, dist, conf.depth_prior)
     # The points move on to where the pose puts them: single points cannot wander off the rigid object.
     snapped, _ = cv2.projectPoints(X[keep], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)
     moved = Track(
