@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
 from batchpose.config import TrackConfig
 from batchpose.method.templates import lift_keypoints
@@ -173,17 +172,19 @@ def _hold_depth(X, xy, T, previous, K, dist, weight: float) -> np.ndarray:
     if z0 <= 0 or rim_px <= 0:
         return T
     k = np.sqrt(weight) * rim_px / z0**2
-
-    def residuals(p: np.ndarray) -> np.ndarray:
-        proj = cv2.projectPoints(X, p[:3], p[3:], K, dist)[0].reshape(-1, 2)
-        z = float((cv2.Rodrigues(p[:3])[0] @ c + p[3:])[2])
-        return np.r_[(proj - xy).ravel(), k * (z - z0)]
-
-    start = np.r_[cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3]]
-    p = least_squares(residuals, start, method="lm", x_scale="jac").x
+    rvec, tvec = cv2.Rodrigues(T[:3, :3])[0].ravel(), T[:3, 3].astype(np.float64).copy()
+    for _ in range(5):  # Gauss-Newton from the LM's pose, which the prior moves only a little
+        proj, jac = cv2.projectPoints(X, rvec, tvec, K, dist)
+        R, dR = cv2.Rodrigues(rvec)
+        J = np.vstack([jac[:, :6], k * np.r_[dR[:, 6:9] @ c, 0.0, 0.0, 1.0]])
+        r = np.r_[(proj.reshape(-1, 2) - xy).ravel(), k * ((R @ c)[2] + tvec[2] - z0)]
+        step = np.linalg.solve(J.T @ J + 1e-9 * np.eye(6), -J.T @ r)
+        rvec, tvec = rvec + step[:3], tvec + step[3:]
+        if np.abs(step).max() < 1e-9:
+            break
     out = np.eye(4)
-    out[:3, :3] = cv2.Rodrigues(p[:3])[0]
-    out[:3, 3] = p[3:]
+    out[:3, :3] = cv2.Rodrigues(rvec)[0]
+    out[:3, 3] = tvec
     return out if out[2, 3] > 0 else T
 
 
