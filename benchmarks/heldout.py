@@ -221,10 +221,10 @@ def generate(
         (scene / "rgb").mkdir(parents=True, exist_ok=True)
         (scene / "depth").mkdir(parents=True, exist_ok=True)
         cams, gts = {}, {}
+        pose = None if stable is None else (lambda g, st=stable: table_rotation(g, st, elevation)[0])
         if sequence > 1:
             for r, start in enumerate(range(0, n, sequence)):
                 run = _Run(k, r, min(sequence, n - start), seed, scale_error, motion_blur)
-                pose = (lambda g, st=stable: table_rotation(g, st, elevation)[0]) if stable is not None else None
                 run.write(scene, cams, gts, model, renderer, usable, pose, r * (sequence + 2))
             (scene / "scene_camera.json").write_text(json.dumps(cams))
             (scene / "scene_gt.json").write_text(json.dumps(gts))
@@ -236,15 +236,7 @@ def generate(
             shown_K = K.copy()
             shown_K[:2, :2] *= 1.0 - 0.01 * real.uniform(*scale_error)
             blur_px = real.uniform(0.0, motion_blur)
-            for _ in range(20):  # a pose whose render stays inside the image
-                if stable is None:
-                    T = place(random_rotation(rng), model.center_m, K, w, h, rng)
-                else:
-                    T = place(table_rotation(rng, stable, elevation)[0], model.center_m, K, w, h, rng, on_ray=True)
-                rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit")
-                ys, xs = np.nonzero(depth > 0)
-                if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
-                    break
+            T, rgb, depth = _inside(rng, pose, model, renderer, K, shown_K, w, h)
             occluder = usable[rng.integers(len(usable))][1] if i % 2 else None  # not a piece showing the object
             img, z = compose(bg, rgb, depth, occluder, rng, bg_depth, np.random.default_rng([seed, k, i]), blur_px)
             _write(scene, 2 * i, img, z, K, T, k, cams, gts)
@@ -286,18 +278,10 @@ class _Run:
         K, w, h = f0.camera.K, f0.camera.width, f0.camera.height
         shown_K = K.copy()
         shown_K[:2, :2] *= self.scale
-        for _ in range(20):  # a pose whose render in the first frame stays inside the image
-            if pose is None:
-                T0 = place(random_rotation(rng), model.center_m, K, w, h, rng)
-            else:
-                T0 = place(pose(rng), model.center_m, K, w, h, rng, on_ray=True)
-            _, depth = renderer.render(model.content_hash, model.mesh, T0, shown_K, w, h, "lit")
-            ys, xs = np.nonzero(depth > 0)
-            if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
-                break
+        T0 = _inside(rng, pose, model, renderer, K, shown_K, w, h)[0]  # in the first frame
         # The camera's motion from the video's ground truth: every object of a YCB-Video scene stands still.
         ref = f0.gt[0].obj_name
-        world_from_cam0 = np.linalg.inv(next(g.cam_from_model for g in f0.gt if g.obj_name == ref))
+        world_from_cam0 = np.linalg.inv(f0.gt[0].cam_from_model)
         occluder = usable[rng.integers(len(usable))][1] if self.r % 2 else None
         for j, (f, bg, bg_depth) in enumerate(frames):
             T = next(g.cam_from_model for g in f.gt if g.obj_name == ref) @ world_from_cam0 @ T0
@@ -309,6 +293,21 @@ class _Run:
             look = np.random.default_rng([self.seed, self.k, self.r, 12])  # the same gain and occluder each frame
             img, z = compose(bg, rgb, depth, occluder, look, bg_depth, each, blur_px, each, self.blur_angle)
             _write(scene, first_id + j, img, z, K, T, self.k, cams, gts)
+
+
+def _inside(rng, pose, model, renderer, K, shown_K, w: int, h: int):
+    """A pose drawn as :func:`place` draws it (``pose``: callable(rng) -> the rotation seen along the optical
+    axis, None: any view) whose render stays inside the image (20 tries, else the last); (pose, rgb, depth)."""
+    for _ in range(20):
+        if pose is None:
+            T = place(random_rotation(rng), model.center_m, K, w, h, rng)
+        else:
+            T = place(pose(rng), model.center_m, K, w, h, rng, on_ray=True)
+        rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit")
+        ys, xs = np.nonzero(depth > 0)
+        if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
+            break
+    return T, rgb, depth
 
 
 def _write(scene: Path, im_id: int, img: np.ndarray, z: np.ndarray, K, T, k: int, cams: dict, gts: dict) -> None:
