@@ -61,6 +61,11 @@ def test_sequence_runs_keep_the_object_still_in_the_scene(heldout, tmp_path):
     heldout.generate(tmp_path, ["040_large_marker"], 6, 0, sequence=3)
     gt = json.loads((tmp_path / "data" / "000001" / "scene_gt.json").read_text())
     assert sorted(map(int, gt)) == [0, 1, 2, 5, 6, 7]
+    # One scale disagreement a run, drawn from the default 0.5–3.7 %, written for every frame (as_shown.py).
+    shown = json.loads((tmp_path / "data" / "000001" / "shown_scale.json").read_text())
+    assert sorted(shown) == sorted(gt)
+    assert shown["0"] == shown["1"] == shown["2"] != shown["5"] == shown["6"] == shown["7"]
+    assert all(0.963 <= s <= 0.995 for s in shown.values())
     poses = {int(i): _pose(v[0]) for i, v in gt.items()}
     # Which real frames were used is not written; find them by the pose the runs' first frames must explain.
     real = {(f.scene_id, f.im_id): f for f in YcbvFrameSource(heldout.DEV) if f.scene_id < 10000}
