@@ -94,3 +94,17 @@ def _cam_motion(real: dict, key: tuple[int, int], j: int) -> np.ndarray:
         return np.full((4, 4), np.nan)
     a, b = real[key].gt[0], next((g for g in later.gt if g.obj_name == real[key].gt[0].obj_name), None)
     return np.full((4, 4), np.nan) if b is None else b.cam_from_model @ np.linalg.inv(a.cam_from_model)
+
+
+def test_the_object_drawn_into_a_frame_stands_in_front_of_its_surroundings(heldout):
+    """``behind``: a frame's depth moved back, all of it by one offset, when the object drawn over it would
+    stand behind what surrounds it; left alone when it stands in front already."""
+    depth = np.zeros((120, 160), np.float32)
+    depth[50:70, 70:90] = np.linspace(1.05, 1.10, 20, dtype=np.float32)[:, None]  # the object, 1.05-1.10 m
+    table = np.full((120, 160), 0.9, np.float32)  # a table 0.9 m away: nearer than the object
+    table[:5] = 0.0  # no reading there
+    moved = heldout.behind(table, depth)
+    assert moved[0, 0] == 0.0 and np.allclose(moved[5:], 1.15)  # one offset; no reading stays none
+    far = np.full((120, 160), 2.0, np.float32)
+    assert np.array_equal(heldout.behind(far, depth), far)
+    assert np.array_equal(heldout.behind(table, np.zeros_like(depth)), table)  # no object in view
