@@ -3,10 +3,7 @@ ground truth would stand with its distance along the optical axis divided by s; 
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -14,20 +11,12 @@ import pytest
 
 from batchpose.io.mesh import load_mesh
 from batchpose.method.render import get_renderer
-from tests.conftest import CRACKER, K_SYN
-
-_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.conftest import CRACKER, K_SYN, load_benchmark
 
 
 @pytest.fixture(scope="module")
 def as_shown():
-    sys.path.insert(0, str(_BENCHMARKS))  # as_shown.py imports its neighbour _common
-    spec = importlib.util.spec_from_file_location("as_shown", _BENCHMARKS / "as_shown.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["as_shown"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("as_shown")
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -3,10 +3,7 @@ at it from within the elevation range above the table, wherever in the image the
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,20 +11,12 @@ import pytest
 from batchpose.io.folders import YcbvFrameSource
 from batchpose.io.mesh import load_mesh
 from batchpose.method.support import stable_faces
-from tests.conftest import CRACKER, K_SYN
-
-_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.conftest import CRACKER, K_SYN, load_benchmark
 
 
 @pytest.fixture(scope="module")
 def heldout():
-    sys.path.insert(0, str(_BENCHMARKS))  # heldout.py imports its neighbour _common
-    spec = importlib.util.spec_from_file_location("heldout", _BENCHMARKS / "heldout.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["heldout"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("heldout")
 
 
 def test_table_views_rest_the_object_and_look_down_at_it(heldout):

@@ -3,24 +3,15 @@ ratio, and the along-ray spread SIFT's inliers predict."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "line_of_sight.py"
+from tests.conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def los():
-    spec = importlib.util.spec_from_file_location("line_of_sight", _PATH)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["line_of_sight"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("line_of_sight")
 
 
 def _ray_frame(t_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -7,10 +7,6 @@ frame, and the pose no farther from the truth than the seed was."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -25,19 +21,14 @@ from batchpose.method.objects import Objects
 from batchpose.method.track import follow_all
 from batchpose.method.tracked import seed_track
 from batchpose.report.metrics import adds
+from tests.conftest import load_benchmark
 
-_BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 NAME = "040_large_marker"
 
 
 @pytest.fixture(scope="module")
 def clip(tmp_path_factory):
-    sys.path.insert(0, str(_BENCHMARKS))
-    spec = importlib.util.spec_from_file_location("heldout", _BENCHMARKS / "heldout.py")
-    assert spec is not None and spec.loader is not None
-    heldout = importlib.util.module_from_spec(spec)
-    sys.modules["heldout"] = heldout
-    spec.loader.exec_module(heldout)
+    heldout = load_benchmark("heldout")
     if not heldout.DEV.is_dir() or not (heldout.MODELS / NAME).is_dir():
         pytest.skip(f"shared YCB-Video data not at {heldout.DATA}")
     out = tmp_path_factory.mktemp("thin")
