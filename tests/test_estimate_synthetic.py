@@ -164,25 +164,35 @@ def test_a_second_retry_at_a_finer_sigma_only_touches_what_the_first_left_weak(c
     assert replaced >= 1
 
 
-def test_a_pose_needs_inliers_on_distinct_pixels(cracker_model, cracker_library):
-    """``min_distinct_inliers``: the inliers are counted by the frame pixels they lie on; a pose on fewer than
-    the floor is pnp_failed, with a reason naming the count (here the floor is raised over this pose's)."""
+def default_then(model, library, changes) -> tuple:
+    """One seeded frame of ``model`` estimated with the default config, then with the fields ``changes(first
+    record)`` returns changed (and no retry): the two records."""
     import dataclasses
 
     rng = np.random.default_rng(7)
-    T = random_pose(rng, cracker_model.center_m)
-    img, cam = compose(rng, cracker_model, T), Camera(K_SYN, 640, 480)
-    models, libraries = {cracker_model.name: cracker_model}, {cracker_model.name: cracker_library}
+    T = random_pose(rng, model.center_m)
+    img, cam = compose(rng, model, T), Camera(K_SYN, 640, 480)
+    models, libraries = {model.name: model}, {model.name: library}
     rec = PoseEstimator(EstimatorConfig(), libraries, models=models, renderer=get_renderer()).estimate_image(
-        img, cam, [cracker_model.name]
+        img, cam, [model.name]
     )[0]
+    changed = dataclasses.replace(EstimatorConfig(), **changes(rec))
+    conf = dataclasses.replace(changed, features=dataclasses.replace(changed.features, retry_contrast_threshold=0))
+    other = PoseEstimator(conf, libraries, models=models, renderer=get_renderer()).estimate_image(
+        img, cam, [model.name]
+    )[0]
+    return rec, other
+
+
+def test_a_pose_needs_inliers_on_distinct_pixels(cracker_model, cracker_library):
+    """``min_distinct_inliers``: the inliers are counted by the frame pixels they lie on; a pose on fewer than
+    the floor is pnp_failed, with a reason naming the count (here the floor is raised over this pose's)."""
+
+    def distinct(rec) -> int:
+        return len(np.unique(np.round(rec.inliers_px).astype(np.int64), axis=0))
+
+    rec, failed = default_then(cracker_model, cracker_library, lambda r: {"min_distinct_inliers": distinct(r) + 1})
     assert rec.ok
-    distinct = len(np.unique(np.round(rec.inliers_px).astype(np.int64), axis=0))
-    assert 4 <= distinct <= rec.n_inliers
-    floor = dataclasses.replace(EstimatorConfig(), min_distinct_inliers=distinct + 1)
-    conf = dataclasses.replace(floor, features=dataclasses.replace(floor.features, retry_contrast_threshold=0))
-    failed = PoseEstimator(conf, libraries, models=models, renderer=get_renderer()).estimate_image(
-        img, cam, [cracker_model.name]
-    )[0]
+    assert 4 <= distinct(rec) <= rec.n_inliers
     assert failed.status == "pnp_failed"
     assert "distinct pixels, need" in failed.reason

@@ -37,6 +37,13 @@ class EstimatorConfig:
     """A pose whose inliers lie on fewer distinct frame pixels than this (to the pixel) is pnp_failed: a frame
     keypoint matched to several templates is one point, and fewer than 4 points leave a pose undetermined
     (any pose through them fits them). 0: no check (the ``paper`` pipeline)."""
+    max_pose_spread: float = knob(0.5, ge=0)
+    """A full estimate whose inliers pin it only loosely is low_confidence: when 1-px noise on the inliers'
+    image positions would move the object's surface points by more than this fraction of its diameter (RMS,
+    from the pose's least-squares covariance: :func:`batchpose.method.gnc_pnp.pose_spread`). Inliers along
+    one line (a pen seen side-on) fit a nearer, more tilted object as well as a farther, flatter one. Applies
+    to every SIFT pose (first pass, retries, the alternatives check), not to tracked poses or the plane
+    search's (the table pins those). 0: no check (the ``paper`` pipeline and the ablations)."""
     confidence_inliers: float = knob(15.0, gt=0)
     """Confidence = (1 - exp(-n_inliers / this)) * exp(-median_residual_px / confidence_residual_px)."""
     confidence_residual_px: float = knob(4.0, gt=0)

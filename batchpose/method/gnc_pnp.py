@@ -247,3 +247,37 @@ def gnc(x, X, K, dist, w_geom, rvec, tvec, inliers, r, conf: GncConfig):
             break
         mu = max(conf.gamma * mu, conf.mu_final_px)
     return rvec, tvec, gnc_inliers, iterations
+
+
+def pose_spread(cam_from_model: np.ndarray, X: np.ndarray, K: np.ndarray, points: np.ndarray) -> float:
+    """How loosely the pairs ``X`` (inliers' model points, (N, 3) metres) pin the pose ``cam_from_model``:
+    the RMS displacement of the model ``points`` (metres) that 1-px noise on the pairs' image positions
+    would cause, in metres (inf when the pairs leave some motion of the pose unconstrained).
+
+    A least-squares pose's covariance under 1-px image noise is ``(J^T J)^-1``, J the Jacobian of the
+    pairs' projections with respect to a small turn w (about the camera's axes) and shift s of the pose;
+    a model point p moves by ``-[R p]x w + s``. Lens distortion is ignored (the Jacobian barely moves with
+    it). Pairs that all lie along a line (a pen seen side-on) leave its distance and tilt trading off
+    against each other: the spread is then a large share of the object's diameter."""
+    R, t = cam_from_model[:3, :3], cam_from_model[:3, 3]
+    Y = X @ R.T + t
+    if len(Y) < 3 or np.any(Y[:, 2] <= 0):
+        return float("inf")
+    fx, fy, z = K[0, 0], K[1, 1], Y[:, 2]
+    dpi = np.zeros((len(Y), 2, 3))  # d(u, v) / dY
+    dpi[:, 0, 0], dpi[:, 0, 2] = fx / z, -fx * Y[:, 0] / z**2
+    dpi[:, 1, 1], dpi[:, 1, 2] = fy / z, -fy * Y[:, 1] / z**2
+    J = np.concatenate([dpi @ -_skew(X @ R.T), dpi], axis=2).reshape(-1, 6)
+    w, V = np.linalg.eigh(J.T @ J)
+    if w[0] <= 1e-9 * w[-1]:
+        return float("inf")
+    cov = (V / w) @ V.T
+    A = np.concatenate([-_skew(points @ R.T), np.broadcast_to(np.eye(3), (len(points), 3, 3))], axis=2)
+    return float(np.sqrt(np.einsum("nij,jk,nik->", A, cov, A) / len(points)))
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3) vectors -> (N, 3, 3) cross-product matrices [v]x."""
+    m = np.zeros((len(v), 3, 3))
+    m[:, 0, 1], m[:, 0, 2], m[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    return m - m.transpose(0, 2, 1)

@@ -18,12 +18,15 @@ from batchpose.core.poses import PoseRecord
 from batchpose.errors import BatchposeError
 from batchpose.method import presence
 from batchpose.method.features import detect_shapes, to_gray
-from batchpose.method.gnc_pnp import PnpResult
+from batchpose.method.gnc_pnp import PnpResult, pose_spread
 from batchpose.method.hypotheses import alternative, planar_mirror, polish, refine
 from batchpose.method.objects import Objects
 from batchpose.method.passes import best, find_passes
 from batchpose.method.records import NOT_FOUND, Replaced, confidence, pose_of
 from batchpose.method.shot import Keypoints, LazyLab, Shot, check_image
+
+#: ``max_pose_spread`` measures the pose's spread over every this-many-th of the mesh's surface samples.
+SPREAD_POINT_STRIDE = 8
 
 
 def estimate_image(
@@ -205,13 +208,15 @@ def estimate_object(
         rec.status = "pnp_failed"
         rec.reason = f"its {res.n_inliers} inliers lie on {distinct} distinct pixels, need {conf.min_distinct_inliers}"
         return rec
-    _finish(objects, shot, rec, res, x_used)
+    _finish(objects, shot, rec, res, x_used, X_used)
     return rec
 
 
-def _finish(objects: Objects, shot: Shot, rec: PoseRecord, res: PnpResult, x_used: np.ndarray) -> None:
+def _finish(
+    objects: Objects, shot: Shot, rec: PoseRecord, res: PnpResult, x_used: np.ndarray, X_used: np.ndarray
+) -> None:
     """The chosen pose into ``rec``: polished (``refine.polish``), with its inliers, residual and confidence;
-    low_confidence under ``min_confidence``."""
+    low_confidence under ``min_confidence`` or over ``max_pose_spread``."""
     conf, name = objects.conf, rec.obj_name
     rec.cam_from_model = res.cam_from_model
     if conf.refine.polish and objects.can_render(name):
@@ -228,6 +233,15 @@ def _finish(objects: Objects, shot: Shot, rec: PoseRecord, res: PnpResult, x_use
             f"confidence {rec.confidence:.2f} below estimator.min_confidence {conf.min_confidence:g} "
             f"({rec.n_inliers} inliers, median residual {rec.median_residual_px:.1f} px)"
         )
+    elif conf.max_pose_spread > 0 and name in objects.models:
+        points = objects.surface(name).points[::SPREAD_POINT_STRIDE]
+        spread = pose_spread(pose_of(res), X_used[res.inliers], shot.camera.K, points) / objects.models[name].diameter_m
+        if spread > conf.max_pose_spread:
+            rec.status = "low_confidence"
+            rec.reason = (
+                f"its {rec.n_inliers} inliers pin the pose only to {spread:.2f} of the object's diameter "
+                f"per pixel of noise, over estimator.max_pose_spread {conf.max_pose_spread:g}"
+            )
 
 
 def roi_mask(objects: Objects, name: str, xy_q: np.ndarray, camera: Camera, cam_from_model: np.ndarray | None):
