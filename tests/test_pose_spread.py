@@ -8,16 +8,9 @@ import numpy as np
 import pytest
 
 from batchpose.config import EstimatorConfig
-from batchpose.method.gnc_pnp import pose_spread
+from batchpose.method.gnc_pnp import pose_spread, to_matrix
 from tests.conftest import K_SYN
 from tests.test_estimate_synthetic import default_then
-
-
-def _pose(rvec, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, float))[0]
-    T[:3, 3] = t
-    return T
 
 
 def _monte_carlo(T: np.ndarray, X: np.ndarray, points: np.ndarray, trials: int = 400) -> float:
@@ -31,7 +24,8 @@ def _monte_carlo(T: np.ndarray, X: np.ndarray, points: np.ndarray, trials: int =
     for _ in range(trials):
         noisy = x + rng.normal(0.0, 1.0, x.shape)
         _, r, t = cv2.solvePnP(X, noisy, K_SYN, None, rvec0.copy(), t0.reshape(3, 1).copy(), True)
-        moved = points @ cv2.Rodrigues(r)[0].T + t.ravel()
+        M = to_matrix(r, t)
+        moved = points @ M[:3, :3].T + M[:3, 3]
         sq.append(np.mean(np.sum((moved - base) ** 2, axis=1)))
     return float(np.sqrt(np.mean(sq)))
 
@@ -41,7 +35,7 @@ def test_the_spread_is_what_noise_on_the_pairs_does_to_a_least_squares_pose():
     faces and for pairs along a pen, within 15 %."""
     rng = np.random.default_rng(1)
     points = rng.uniform(-0.06, 0.06, (300, 3))
-    T = _pose([0.4, -0.3, 0.2], [0.05, -0.03, 0.8])
+    T = to_matrix([0.4, -0.3, 0.2], [0.05, -0.03, 0.8])
     box = rng.uniform(-0.06, 0.06, (25, 3))
     pen = np.c_[rng.uniform(-0.06, 0.06, 25), rng.normal(0, 0.003, (25, 2))]
     for X in (box, pen):
@@ -53,7 +47,7 @@ def test_pairs_along_a_line_pin_a_pose_far_less_than_pairs_over_the_object():
     over twice the box's; pairs exactly on one line (or fewer than three) leave it unconstrained."""
     rng = np.random.default_rng(2)
     points = rng.uniform(-0.06, 0.06, (300, 3))
-    T = _pose([0.1, 0.2, -0.1], [0.0, 0.02, 1.0])
+    T = to_matrix([0.1, 0.2, -0.1], [0.0, 0.02, 1.0])
     box = pose_spread(T, rng.uniform(-0.06, 0.06, (20, 3)), K_SYN, points)
     pen = pose_spread(T, np.c_[rng.uniform(-0.06, 0.06, 20), rng.normal(0, 0.003, (20, 2))], K_SYN, points)
     assert pen > 2 * box
