@@ -354,9 +354,9 @@ class TrackConfig:
     render_search_px: int = knob(3, ge=1)
     """How far from its tracked position a point's rendered patch is looked for."""
     depth_prior: float = knob(1.0, ge=0)
-    """Each followed pose is solved with its change of depth since the previous frame costing as much as
-    this many points would if the points' rim moved as far in the image as that change makes it grow or
-    shrink (0: no prior). A few points along a thin object, lifted at a pose a little off, do not pin the
+    """Each followed pose (and each pulled onto the rendered mesh at a new keyframe) is solved with its
+    change of depth since the previous frame costing as much as this many points would if the points' rim
+    moved as far in the image as that change makes it grow or shrink (0: no prior). A few points along a thin object, lifted at a pose a little off, do not pin the
     depth: a marker's track slid 0.11 -> 0.49 d along the line of sight in three frames without it, and
     stays at 0.11-0.13 d with it; where the points pin the depth it moves the pose by a fraction of a pixel
     (reports/ACCURACY.md, "Tracking a thin object"). About 1 ms a track a frame."""
@@ -365,7 +365,14 @@ class TrackConfig:
     reproj_px: float = 3.0
     """... and its reprojection error at the tracked pose is at most this."""
     window_px: int = knob(15, ge=5)
-    """Lucas-Kanade window side."""
+    """Lucas-Kanade window side. Corners are seeded at least half of it inside the object's silhouette, so that
+    no window reaches over the outline (the background there does not move with the object) ..."""
+    thin_margin_px: int = knob(2, ge=0)
+    """... except where that leaves fewer than ``min_points`` corners, a thin object (a pen 20 px wide keeps
+    a strip of 6 px): then they are seeded this far inside its outline (``window_px // 2`` or more: never). The
+    forward-backward check, the pull onto the rendered mesh and the checks of each new keyframe catch a point
+    the background drags. Without it no track or carry could start on the large marker of the held-out
+    sequences (reports/ACCURACY.md, "Tracking a thin object")."""
     levels: int = knob(3, ge=0)
     """Lucas-Kanade pyramid levels above the full image."""
     lost_full_every: int = knob(4, ge=1)

@@ -95,6 +95,7 @@ def seed(
     dist: np.ndarray,
     conf: TrackConfig,
     hidden: Sequence[Occluder] = (),
+    margin_px: int | None = None,
 ):
     """Corners on the object at a known pose, where the frame looks like the mesh rendered there.
 
@@ -108,13 +109,15 @@ def seed(
             coefficients (may be empty). hidden: what is in front of part of the object (:func:`occluders`):
             no corners where it is and the object is farther than its nearest point, so the corners are
             spread over the part that shows and ``conf.quality`` is relative to its strongest corner.
+        margin_px: how far inside the silhouette a corner must be (default half the flow window,
+            ``conf.window_px``: no window reaches over the outline, whose background does not move with the
+            object).
 
     Returns:
         xy (N, 2) float32 and X (N, 3) float64 model-frame points; N may be 0.
     """
     mask = (depth_m > 0).astype(np.uint8)
-    # No corners whose flow window reaches over the silhouette: the background does not move with the object.
-    k = 2 * (conf.window_px // 2) + 1
+    k = 2 * (conf.window_px // 2 if margin_px is None else margin_px) + 1
     mask = cv2.erode(mask, np.ones((k, k), np.uint8))
     for occ in hidden:
         mask[occ.mask & (depth_m > occ.near_m)] = 0
@@ -399,12 +402,21 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seed
 
 
 def anchor_to_render(
-    gray: np.ndarray, render_gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
+    gray: np.ndarray,
+    render_gray: np.ndarray,
+    track: Track,
+    K: np.ndarray,
+    dist: np.ndarray,
+    conf: TrackConfig,
+    hold_depth: bool = False,
 ) -> TrackResult | None:
     """Re-place the track's points on the mesh itself and solve again: each point's patch in the mesh
     rendered at the tracked pose is found in the frame by normalised cross-correlation within
     ``render_search_px``, so the pose is pulled back onto the model however far the flow has drifted
-    (within the search radius). None when too few points are found."""
+    (within the search radius). None when too few points are found. ``hold_depth``: solved with
+    ``conf.depth_prior`` as a followed pose is, against the tracked pose's depth (a tracker's pull: a thin
+    object's points, found again in the render, let the pose slide along the line of sight as flowed points
+    do; the held-out marker's carries jumped 4 % in depth there)."""
     h, r = conf.ncc_radius_px, conf.render_search_px
     H, W = gray.shape
     rvec = cv2.Rodrigues(track.cam_from_model[:3, :3])[0]
@@ -441,6 +453,8 @@ def anchor_to_render(
     if solved is None:
         return None
     T, keep, med = solved
+    if hold_depth and conf.depth_prior > 0:
+        T = _hold_depth(track.X[ok][keep], found[ok][keep], T, track.cam_from_model, K, dist, conf.depth_prior)
     moved = Track(
         cv2.projectPoints(track.X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2).astype(np.float32),
         track.X,

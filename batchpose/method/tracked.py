@@ -144,7 +144,7 @@ def _keep_up(objects: Objects, name: str, gray, res, camera: Camera, hidden, fra
     tc = objects.conf.track
     if tc.render_every and res.track.age % tc.render_every == 0:
         rendered = objects.render_gray(name, res.track.cam_from_model, camera)
-        anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc)
+        anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc, hold_depth=True)
         res = anchored if anchored is not None else res
     old_age, thinning = res.track.age, len(res.track.xy) < tc.reseed_fraction * res.track.n_seeded
     key = res.track.key_pose
@@ -229,8 +229,11 @@ def seed_track(
     rgb, depth = objects.render(name, T, camera)
     if look is not None and not looks_alike(objects, look, rgb, depth, hidden):
         return None
-    xy, X = seed(gray, T, to_gray(rgb), depth, camera.K, camera.dist, objects.conf.track, hidden)
-    if len(xy) < objects.conf.track.min_points:
+    tc, rendered = objects.conf.track, to_gray(rgb)
+    xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden)
+    if len(xy) < tc.min_points and tc.thin_margin_px < tc.window_px // 2:  # a thin object: its outline too
+        xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden, margin_px=tc.thin_margin_px)
+    if len(xy) < tc.min_points:
         return None
     return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy(), key_pose=T.copy())
 
@@ -257,12 +260,14 @@ def looks_alike(objects: Objects, frame: FrameEdges, rgb: np.ndarray, depth: np.
 def refresh(objects: Objects, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), look=None):
     """A new keyframe at the tracked pose, checked against the mesh: the mesh rendered there must look like
     the frame (:func:`looks_alike`, given the frame ``look``), then the points are pulled onto
-    it (:func:`batchpose.method.track.anchor_to_render`) and corners are seeded afresh at the pulled pose. None
+    it (:func:`batchpose.method.track.anchor_to_render`, its depth held as a followed pose's is, ``track.depth_prior``)
+    and corners are seeded afresh at the pulled pose. None
     when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
     rgb, depth = objects.render(name, res.track.cam_from_model, camera)
     if look is not None and not looks_alike(objects, look, rgb, depth, hidden):
         return None
-    anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, objects.conf.track)
+    tc = objects.conf.track
+    anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, tc, hold_depth=True)
     if anchored is None:
         return None
     rec = PoseRecord("", name, "ok", cam_from_model=anchored.track.cam_from_model, confidence=res.track.confidence)
