@@ -107,3 +107,31 @@ def test_a_thin_object_is_seeded_near_its_outline_and_carried(far_clip):
     for rec, true in zip(found.records, truth[1:], strict=True):
         T = pose_of(rec)
         assert adds(T[:3, :3], T[:3, 3], true[:3, :3], true[:3, 3], pts) < 0.1 * model.diameter_m
+
+
+def test_a_followed_pose_reports_the_residual_of_the_pose_it_reports():
+    """Points along a pen whose flow says it moved 3 % farther: the depth prior holds the pose back, and the
+    median residual reported (which the tracked pose's confidence is made of) is the held pose's, not the
+    unconstrained LM's (about 0 px here)."""
+    import cv2
+
+    from batchpose.method.track import Track, _residuals, _solve_track
+
+    K = np.array([[1000.0, 0, 320], [0, 1000.0, 240], [0, 0, 1]])
+    dist = np.zeros(5)
+    rng = np.random.default_rng(0)
+    X = np.c_[np.linspace(-0.06, 0.06, 20), rng.normal(0, 0.002, 20), rng.normal(0, 0.002, 20)]
+    before = np.eye(4)
+    before[:3, 3] = [0.0, 0.0, 1.0]
+    after = before.copy()
+    after[2, 3] = 1.03
+    xy = cv2.projectPoints(X, np.zeros(3), after[:3, 3], K, dist)[0].reshape(-1, 2)
+    track = Track(xy.astype(np.float32), X, before, len(X), 0.9)
+    conf = EstimatorConfig().track
+    res = _solve_track(track, xy, X, None, K, dist, conf, len(X))
+    assert res is not None
+    T = res.track.cam_from_model
+    assert T[2, 3] < 1.028  # held back from the 3 % the points alone would give
+    at_T = np.median(_residuals(X, xy, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist))
+    assert res.median_residual_px == pytest.approx(at_T, rel=1e-6)
+    assert res.median_residual_px > 0.05

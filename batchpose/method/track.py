@@ -143,6 +143,10 @@ def _residuals(X, xy, rvec, tvec, K, dist) -> np.ndarray:
     return np.linalg.norm(proj.reshape(-1, 2) - xy, axis=1)
 
 
+def _median_residual(X, xy, T, K, dist) -> float:
+    return float(np.median(_residuals(X, xy, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)))
+
+
 def _solve_lm(X, xy, T, K, dist, conf: TrackConfig, n_needed: float):
     """LM from pose ``T``, trimming twice; (pose, kept mask, median residual) or None."""
     rvec = cv2.Rodrigues(T[:3, :3])[0]
@@ -385,6 +389,7 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seed
     T, keep, med = solved
     if conf.depth_prior > 0:
         T = _hold_depth(X[keep], xy[keep], T, track.cam_from_model, K, dist, conf.depth_prior)
+        med = _median_residual(X[keep], xy[keep], T, K, dist)  # the reported pose's, not the LM's
     # The points move on to where the pose puts them: single points cannot wander off the rigid object.
     snapped, _ = cv2.projectPoints(X[keep], cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)
     moved = Track(
@@ -455,6 +460,7 @@ def anchor_to_render(
     T, keep, med = solved
     if hold_depth and conf.depth_prior > 0:
         T = _hold_depth(track.X[ok][keep], found[ok][keep], T, track.cam_from_model, K, dist, conf.depth_prior)
+        med = _median_residual(track.X[ok][keep], found[ok][keep], T, K, dist)
     moved = Track(
         cv2.projectPoints(track.X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2).astype(np.float32),
         track.X,
