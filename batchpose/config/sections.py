@@ -354,12 +354,13 @@ class TrackConfig:
     render_search_px: int = knob(3, ge=1)
     """How far from its tracked position a point's rendered patch is looked for."""
     depth_prior: float = knob(1.0, ge=0)
-    """Each followed pose (and each pulled onto the rendered mesh at a new keyframe) is solved with its
-    change of depth since the previous frame costing as much as this many points would if the points' rim
-    moved as far in the image as that change makes it grow or shrink (0: no prior). A few points along a thin object, lifted at a pose a little off, do not pin the
-    depth: a marker's track slid 0.11 -> 0.49 d along the line of sight in three frames without it, and
-    stays at 0.11-0.13 d with it; where the points pin the depth it moves the pose by a fraction of a pixel
-    (reports/ACCURACY.md, "Tracking a thin object"). About 1 ms a track a frame."""
+    """Each followed pose (and a thin track's pulled onto the rendered mesh at a new keyframe) is solved with
+    its change of depth since the previous frame costing as much as this many points would if the points' rim
+    moved as far in the image as that change makes it grow or shrink (0: no prior). A few points along a thin
+    object, lifted at a pose a little off, do not pin the depth: a marker's track slid 0.11 -> 0.49 d along
+    the line of sight in three frames without it, and stays at 0.11-0.13 d with it; where the points pin the
+    depth it moves the pose by a fraction of a pixel (reports/ACCURACY.md, "Tracking a thin object"). About
+    1 ms a track a frame."""
     fb_max_px: float = 1.0
     """A point survives a frame when optical flow back from its new position lands this close to the old."""
     reproj_px: float = 3.0
@@ -371,8 +372,9 @@ class TrackConfig:
     """... except where that leaves fewer than ``min_points`` corners, a thin object (a pen 20 px wide keeps
     a strip of 6 px): then they are seeded this far inside its outline (``window_px // 2`` or more: never). The
     forward-backward check, the pull onto the rendered mesh and the checks of each new keyframe catch a point
-    the background drags. Without it no track or carry could start on the large marker of the held-out
-    sequences (reports/ACCURACY.md, "Tracking a thin object")."""
+    the background drags; the pull holds such a track's depth (``depth_prior``). Without it no track or carry
+    could start on the large marker of the held-out sequences (reports/ACCURACY.md, "Tracking a thin
+    object")."""
     levels: int = knob(3, ge=0)
     """Lucas-Kanade pyramid levels above the full image."""
     lost_full_every: int = knob(4, ge=1)

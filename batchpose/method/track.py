@@ -40,6 +40,8 @@ class Track:
         age: frames tracked since the keyframe.
         key_gray: the keyframe image; key_xy: (N, 2) the surviving points' positions in it.
         key_pose: (4, 4) the pose at the keyframe (None: unknown).
+        thin: seeded near its outline (``track.thin_margin_px``: too few corners inside the flow window's
+            margin): a thin object, whose points do not pin its depth.
     """
 
     xy: np.ndarray
@@ -51,6 +53,7 @@ class Track:
     key_gray: np.ndarray | None = None
     key_xy: np.ndarray | None = None
     key_pose: np.ndarray | None = None
+    thin: bool = False
 
 
 @dataclass
@@ -402,6 +405,7 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seed
         track.key_gray,
         key_xy[keep] if key_xy is not None else None,
         track.key_pose,
+        track.thin,
     )
     return TrackResult(moved, int(keep.sum()), med)
 
@@ -413,15 +417,16 @@ def anchor_to_render(
     K: np.ndarray,
     dist: np.ndarray,
     conf: TrackConfig,
-    hold_depth: bool = False,
 ) -> TrackResult | None:
     """Re-place the track's points on the mesh itself and solve again: each point's patch in the mesh
     rendered at the tracked pose is found in the frame by normalised cross-correlation within
     ``render_search_px``, so the pose is pulled back onto the model however far the flow has drifted
-    (within the search radius). None when too few points are found. ``hold_depth``: solved with
-    ``conf.depth_prior`` as a followed pose is, against the tracked pose's depth (a tracker's pull: a thin
-    object's points, found again in the render, let the pose slide along the line of sight as flowed points
-    do; the held-out marker's carries jumped 4 % in depth there)."""
+    (within the search radius). None when too few points are found. A thin track's pose (``track.thin``) is
+    solved with ``conf.depth_prior`` as a followed pose is, against the tracked pose's depth: its points,
+    found again in the render, let it slide along the line of sight as flowed points do (the held-out
+    marker's carries jumped 4 % in depth there). Other tracks are not held: their points pin the depth, and
+    the pull is what takes out the depth the flow has drifted (held too, a gelatin box moving through a
+    generated log drifted to 0.37 d)."""
     h, r = conf.ncc_radius_px, conf.render_search_px
     H, W = gray.shape
     rvec = cv2.Rodrigues(track.cam_from_model[:3, :3])[0]
@@ -458,7 +463,7 @@ def anchor_to_render(
     if solved is None:
         return None
     T, keep, med = solved
-    if hold_depth and conf.depth_prior > 0:
+    if track.thin and conf.depth_prior > 0:
         T = _hold_depth(track.X[ok][keep], found[ok][keep], T, track.cam_from_model, K, dist, conf.depth_prior)
         med = _median_residual(track.X[ok][keep], found[ok][keep], T, K, dist)
     moved = Track(
@@ -471,6 +476,7 @@ def anchor_to_render(
         track.key_gray,
         track.key_xy,
         track.key_pose,
+        track.thin,
     )
     return TrackResult(moved, int(keep.sum()), med)
 

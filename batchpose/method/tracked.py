@@ -144,7 +144,7 @@ def _keep_up(objects: Objects, name: str, gray, res, camera: Camera, hidden, fra
     tc = objects.conf.track
     if tc.render_every and res.track.age % tc.render_every == 0:
         rendered = objects.render_gray(name, res.track.cam_from_model, camera)
-        anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc, hold_depth=True)
+        anchored = anchor_to_render(gray, rendered, res.track, camera.K, camera.dist, tc)
         res = anchored if anchored is not None else res
     old_age, thinning = res.track.age, len(res.track.xy) < tc.reseed_fraction * res.track.n_seeded
     key = res.track.key_pose
@@ -231,11 +231,12 @@ def seed_track(
         return None
     tc, rendered = objects.conf.track, to_gray(rgb)
     xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden)
-    if len(xy) < tc.min_points and tc.thin_margin_px < tc.window_px // 2:  # a thin object: its outline too
+    thin = len(xy) < tc.min_points and tc.thin_margin_px < tc.window_px // 2  # its outline too, then
+    if thin:
         xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden, margin_px=tc.thin_margin_px)
     if len(xy) < tc.min_points:
         return None
-    return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy(), key_pose=T.copy())
+    return Track(xy, X, T, len(xy), rec.confidence, key_gray=gray, key_xy=xy.copy(), key_pose=T.copy(), thin=thin)
 
 
 def looks_alike(objects: Objects, frame: FrameEdges, rgb: np.ndarray, depth: np.ndarray, hidden=()) -> bool:
@@ -260,14 +261,14 @@ def looks_alike(objects: Objects, frame: FrameEdges, rgb: np.ndarray, depth: np.
 def refresh(objects: Objects, name: str, gray: np.ndarray, res, camera: Camera, hidden=(), look=None):
     """A new keyframe at the tracked pose, checked against the mesh: the mesh rendered there must look like
     the frame (:func:`looks_alike`, given the frame ``look``), then the points are pulled onto
-    it (:func:`batchpose.method.track.anchor_to_render`, its depth held as a followed pose's is, ``track.depth_prior``)
-    and corners are seeded afresh at the pulled pose. None
+    it (:func:`batchpose.method.track.anchor_to_render`; a thin track's depth held as a followed pose's is,
+    ``track.depth_prior``) and corners are seeded afresh at the pulled pose. None
     when the frame no longer matches the mesh at that pose (the track has drifted or is occluded)."""
     rgb, depth = objects.render(name, res.track.cam_from_model, camera)
     if look is not None and not looks_alike(objects, look, rgb, depth, hidden):
         return None
     tc = objects.conf.track
-    anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, tc, hold_depth=True)
+    anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, tc)
     if anchored is None:
         return None
     rec = PoseRecord("", name, "ok", cam_from_model=anchored.track.cam_from_model, confidence=res.track.confidence)
