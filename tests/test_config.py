@@ -25,17 +25,17 @@ from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose. The template libraries' cache
 # keys hash only the sections that make a library (io.library).
-DEFAULT_HASH = "dc10c395a52c4a14"
-DEFAULT_LAYOUT_HASH = "83164bc2f721edbd"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "07e581e7c7cf730b"
+DEFAULT_LAYOUT_HASH = "ec64cd446edcd870"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "14dcec172420568c",
-    "gnc_pose.yaml": "dc10c395a52c4a14",
-    "no_geom_weights.yaml": "3fc5d70032eabf62",
-    "oracle_roi.yaml": "c6caf1132969dcbb",
-    "paper.yaml": "45c7deb5f95620cb",
-    "ransac_only.yaml": "37ba0c62588a6a79",
-    "rgbd.yaml": "2076bf0ba73c1c51",
-    "tp_ub.yaml": "2fb42ea30136502e",
+    "fast.yaml": "7c9add1ef8d78b7d",
+    "gnc_pose.yaml": "07e581e7c7cf730b",
+    "no_geom_weights.yaml": "6a88ec13b59b4802",
+    "oracle_roi.yaml": "a752a49e4c95e5ca",
+    "paper.yaml": "9641425fec3e5c18",
+    "ransac_only.yaml": "3ca175a0c68d31b9",
+    "rgbd.yaml": "e9a6502423ade49b",
+    "tp_ub.yaml": "88bf31d2c1c0f1a5",
 }
 
 

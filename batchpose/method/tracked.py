@@ -231,7 +231,7 @@ def seed_track(
         return None
     tc, rendered = objects.conf.track, to_gray(rgb)
     xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden)
-    thin = len(xy) < tc.min_points and tc.thin_margin_px < tc.window_px // 2  # its outline too, then
+    thin = len(xy) < tc.min_points and 0 < tc.thin_margin_px < tc.window_px // 2  # its outline too, then
     if thin:
         xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden, margin_px=tc.thin_margin_px)
     if len(xy) < tc.min_points:
