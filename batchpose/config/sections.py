@@ -376,8 +376,8 @@ class TrackConfig:
     along the line of sight (a pen's image length fits a nearer, more tilted pen as well), and its track
     repeats that pose in every frame it follows, in place of full estimates that may get it right. On the
     held-out sequences 2 made 14 pairs ok in seeds 3-6, all right, and in seed 7 made 10 ok, all 0.21-0.32 d
-    off the pose the image shows, and moved two right ones there (reports/ACCURACY.md, "Tracking a thin
-    object")."""
+    off the pose the image shows, and turned three right ones there wrong (reports/ACCURACY.md, "Tracking a
+    thin object")."""
     levels: int = knob(3, ge=0)
     """Lucas-Kanade pyramid levels above the full image."""
     lost_full_every: int = knob(4, ge=1)
