@@ -411,12 +411,7 @@ def _solve_track(track: Track, xy, X, key_xy, K, dist, conf: TrackConfig, n_seed
 
 
 def anchor_to_render(
-    gray: np.ndarray,
-    render_gray: np.ndarray,
-    track: Track,
-    K: np.ndarray,
-    dist: np.ndarray,
-    conf: TrackConfig,
+    gray: np.ndarray, render_gray: np.ndarray, track: Track, K: np.ndarray, dist: np.ndarray, conf: TrackConfig
 ) -> TrackResult | None:
     """Re-place the track's points on the mesh itself and solve again: each point's patch in the mesh
     rendered at the tracked pose is found in the frame by normalised cross-correlation within
@@ -464,8 +459,9 @@ def anchor_to_render(
         return None
     T, keep, med = solved
     if track.thin and conf.depth_prior > 0:
-        T = _hold_depth(track.X[ok][keep], found[ok][keep], T, track.cam_from_model, K, dist, conf.depth_prior)
-        med = _median_residual(track.X[ok][keep], found[ok][keep], T, K, dist)
+        X_kept, xy_kept = track.X[ok][keep], found[ok][keep]
+        T = _hold_depth(X_kept, xy_kept, T, track.cam_from_model, K, dist, conf.depth_prior)
+        med = _median_residual(X_kept, xy_kept, T, K, dist)
     moved = Track(
         cv2.projectPoints(track.X, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], K, dist)[0].reshape(-1, 2).astype(np.float32),
         track.X,

@@ -231,7 +231,7 @@ def seed_track(
         return None
     tc, rendered = objects.conf.track, to_gray(rgb)
     xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden)
-    thin = len(xy) < tc.min_points and 0 < tc.thin_margin_px < tc.window_px // 2  # its outline too, then
+    thin = len(xy) < tc.min_points and 0 < tc.thin_margin_px < tc.window_px // 2  # seed nearer the outline
     if thin:
         xy, X = seed(gray, T, rendered, depth, camera.K, camera.dist, tc, hidden, margin_px=tc.thin_margin_px)
     if len(xy) < tc.min_points:
@@ -267,8 +267,7 @@ def refresh(objects: Objects, name: str, gray: np.ndarray, res, camera: Camera, 
     rgb, depth = objects.render(name, res.track.cam_from_model, camera)
     if look is not None and not looks_alike(objects, look, rgb, depth, hidden):
         return None
-    tc = objects.conf.track
-    anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, tc)
+    anchored = anchor_to_render(gray, to_gray(rgb), res.track, camera.K, camera.dist, objects.conf.track)
     if anchored is None:
         return None
     rec = PoseRecord("", name, "ok", cam_from_model=anchored.track.cam_from_model, confidence=res.track.confidence)
