@@ -19,6 +19,12 @@ Two degradations make the frames score like real ones (``--scale-error``, ``--mo
   to the run stay the true ones; the depth image follows the ground truth);
 - **motion blur** of a hand-held camera: a line kernel of up to ``--motion-blur`` (4) px in a random direction.
 
+The light (``--light``): ``headlight`` (the default) lights the object from the camera; ``above`` from a
+direction drawn above the camera (a ceiling light: up to 31° either side of the image's up, tilted up to 39°
+back over the camera or 27° forward over the scene; one a frame, or one a run), so that faces turned from it
+are dim — a lighting no template library is rendered with (``render.shading`` "flat" draws the albedo, "lit"
+a headlight).
+
 The views (``--views``): ``table`` (the default) stands the object on one of its resting faces (trimesh's stable
 poses, drawn by their probability), turned any way about the table's normal, and looks at it from 15–65°
 above the table (``--elevation``), as YCB-Video's hand-held cameras look at objects on a table (ycbv_dev's
@@ -100,6 +106,12 @@ def random_rotation(rng: np.random.Generator, max_roll_deg: float = 30.0) -> np.
     up = np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.95 else np.array([1.0, 0.0, 0.0])
     R = look_at(d, np.zeros(3), up)[:3, :3]
     return _roll(rng, max_roll_deg) @ R
+
+
+def light_above(rng: np.random.Generator) -> np.ndarray:
+    """``--light above``: a direction towards a light above the camera, in its axes (x right, y down)."""
+    v = np.array([rng.uniform(-0.6, 0.6), -1.0, rng.uniform(-0.8, 0.5)])
+    return v / np.linalg.norm(v)
 
 
 def _roll(rng: np.random.Generator, max_roll_deg: float) -> np.ndarray:
@@ -229,10 +241,11 @@ def generate(
     views: str = "table",
     elevation=(15.0, 65.0),
     sequence: int = 1,
+    light: str = "headlight",
 ) -> Path:
     """Write the BOP data set and its manifest; returns the manifest path. ``scale_error`` (percent, low and
-    high), ``motion_blur`` (px), ``views``, ``elevation`` (degrees) and ``sequence``: see the module
-    docstring."""
+    high), ``motion_blur`` (px), ``views``, ``elevation`` (degrees), ``sequence`` and ``light``: see the
+    module docstring."""
     source = YcbvFrameSource(DEV)
     bgs = [(f, decode_image(f), decode_depth(f)) for f in source if f.scene_id < 10000]  # real frames only
     renderer = get_renderer()
@@ -250,7 +263,7 @@ def generate(
         pose = None if stable is None else (lambda g, st=stable: table_rotation(g, st, elevation)[0])
         if sequence > 1:
             for r, start in enumerate(range(0, n, sequence)):
-                run = _Run(k, r, min(sequence, n - start), seed, scale_error, motion_blur)
+                run = _Run(k, r, min(sequence, n - start), seed, scale_error, motion_blur, light)
                 run.write(scene, cams, gts, model, renderer, usable, pose, r * (sequence + 2))
                 shown.update(dict.fromkeys(sorted(set(cams) - set(shown)), run.scale))
             _finish(scene, cams, gts, shown)
@@ -263,7 +276,8 @@ def generate(
             shown[str(2 * i)] = 1.0 - 0.01 * real.uniform(*scale_error)
             shown_K[:2, :2] *= shown[str(2 * i)]
             blur_px = real.uniform(0.0, motion_blur)
-            T, rgb, depth = _inside(rng, pose, model, renderer, K, shown_K, w, h)
+            lit_from = light_above(np.random.default_rng([seed, k, i, 2])) if light == "above" else None
+            T, rgb, depth = _inside(rng, pose, model, renderer, K, shown_K, w, h, lit_from)
             occluder = usable[rng.integers(len(usable))][1] if i % 2 else None  # not a piece showing the object
             backdrop = behind(bg_depth, depth)
             img, z = compose(bg, rgb, depth, occluder, rng, backdrop, np.random.default_rng([seed, k, i]), blur_px)
@@ -284,11 +298,14 @@ def generate(
 class _Run:
     """``--sequence``: object ``k``'s ``r``-th run of ``length`` consecutive frames of one real video."""
 
-    def __init__(self, k: int, r: int, length: int, seed: int, scale_error, motion_blur: float) -> None:
+    def __init__(
+        self, k: int, r: int, length: int, seed: int, scale_error, motion_blur: float, light: str = "headlight"
+    ) -> None:
         self.k, self.r, self.length, self.seed, self.motion_blur = k, r, length, seed, motion_blur
         self.rng = np.random.default_rng([seed, k, r, 11])  # the run's draws: video, place, scale, occluder
         self.scale = 1.0 - 0.01 * self.rng.uniform(*scale_error)
         self.blur_angle = self.rng.uniform(0.0, np.pi)  # a hand-held camera sways one way for a while
+        self.light = light_above(np.random.default_rng([seed, k, r, 14])) if light == "above" else None
 
     def write(self, scene: Path, cams: dict, gts: dict, model, renderer, usable: list, pose, first_id: int) -> None:
         """Render the run into a stretch of a video that does not show the object (``usable``: background
@@ -305,14 +322,14 @@ class _Run:
         K, w, h = f0.camera.K, f0.camera.width, f0.camera.height
         shown_K = K.copy()
         shown_K[:2, :2] *= self.scale
-        T0 = _inside(rng, pose, model, renderer, K, shown_K, w, h)[0]  # in the first frame
+        T0 = _inside(rng, pose, model, renderer, K, shown_K, w, h, self.light)[0]  # in the first frame
         # The camera's motion from the video's ground truth: every object of a YCB-Video scene stands still.
         ref = f0.gt[0].obj_name
         world_from_cam0 = np.linalg.inv(f0.gt[0].cam_from_model)
         occluder = usable[rng.integers(len(usable))][1] if self.r % 2 else None
         for j, (f, bg, bg_depth) in enumerate(frames):
             T = next(g.cam_from_model for g in f.gt if g.obj_name == ref) @ world_from_cam0 @ T0
-            rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit")
+            rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit", light_from=self.light)
             each = np.random.default_rng([self.seed, self.k, self.r, j, 13])
             blur_px = each.uniform(0.0, self.motion_blur)
             if not (depth > 0).any():
@@ -324,7 +341,7 @@ class _Run:
             _write(scene, first_id + j, img, z, K, T, self.k, cams, gts)
 
 
-def _inside(rng, pose, model, renderer, K, shown_K, w: int, h: int):
+def _inside(rng, pose, model, renderer, K, shown_K, w: int, h: int, light_from=None):
     """A pose drawn as :func:`place` draws it (``pose``: callable(rng) -> the rotation seen along the optical
     axis, None: any view) whose render stays inside the image (20 tries, else the last); (pose, rgb, depth)."""
     for _ in range(20):
@@ -332,7 +349,7 @@ def _inside(rng, pose, model, renderer, K, shown_K, w: int, h: int):
             T = place(random_rotation(rng), model.center_m, K, w, h, rng)
         else:
             T = place(pose(rng), model.center_m, K, w, h, rng, on_ray=True)
-        rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit")
+        rgb, depth = renderer.render(model.content_hash, model.mesh, T, shown_K, w, h, "lit", light_from=light_from)
         ys, xs = np.nonzero(depth > 0)
         if len(xs) > 200 and xs.min() > 2 and ys.min() > 2 and xs.max() < w - 3 and ys.max() < h - 3:
             break
@@ -428,6 +445,9 @@ def main() -> int:
         help="--views table: the camera this many degrees above the table (default 15 65)",
     )
     ap.add_argument(
+        "--light", choices=("headlight", "above"), default="headlight", help="light from the camera or from above"
+    )
+    ap.add_argument(
         "--sequence", type=int, default=1, metavar="L", help="frames in runs of L consecutive ones (default 1: alone)"
     )
     ap.add_argument("--real", type=Path, help="a ycbv_dev run: compare with its real frames' scores")
@@ -454,6 +474,7 @@ def main() -> int:
         args.views,
         tuple(args.elevation),
         args.sequence,
+        args.light,
     )
     run_pipeline(manifest, out / "run", args)
     summary = pd.read_csv(out / "run" / "report" / "summary.csv")

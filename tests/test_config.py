@@ -25,17 +25,17 @@ from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose. The template libraries' cache
 # keys hash only the sections that make a library (io.library).
-DEFAULT_HASH = "07e581e7c7cf730b"
-DEFAULT_LAYOUT_HASH = "ec64cd446edcd870"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "2ed0556807aee146"
+DEFAULT_LAYOUT_HASH = "0c89e078f9b4c862"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "7c9add1ef8d78b7d",
-    "gnc_pose.yaml": "07e581e7c7cf730b",
-    "no_geom_weights.yaml": "6a88ec13b59b4802",
-    "oracle_roi.yaml": "a752a49e4c95e5ca",
+    "fast.yaml": "2c592b4b49cfa989",
+    "gnc_pose.yaml": "2ed0556807aee146",
+    "no_geom_weights.yaml": "6f88f3b470cfef92",
+    "oracle_roi.yaml": "9c0fc35ab291a3e5",
     "paper.yaml": "9641425fec3e5c18",
-    "ransac_only.yaml": "3ca175a0c68d31b9",
-    "rgbd.yaml": "e9a6502423ade49b",
-    "tp_ub.yaml": "88bf31d2c1c0f1a5",
+    "ransac_only.yaml": "326c274e064b8086",
+    "rgbd.yaml": "716246a28d0bbc90",
+    "tp_ub.yaml": "cf899a2d0f3b4e23",
 }
 
 

@@ -97,3 +97,37 @@ def test_the_object_drawn_into_a_frame_stands_in_front_of_its_surroundings(heldo
     far = np.full((120, 160), 2.0, np.float32)
     assert np.array_equal(heldout.behind(far, depth), far)
     assert np.array_equal(heldout.behind(table, np.zeros_like(depth)), table)  # no object in view
+
+
+def test_light_above_changes_only_the_object(heldout, tmp_path):
+    """``--light above`` draws its light from streams of its own: the same poses, backgrounds and noise as
+    the headlight's frames, only the object shaded otherwise."""
+    if not heldout.DEV.is_dir() or not heldout.MODELS.is_dir():
+        pytest.skip(f"shared YCB-Video data not at {heldout.DATA}")
+    import cv2  # noqa: PLC0415
+
+    from batchpose.method.render import get_renderer  # noqa: PLC0415
+
+    for light in ("headlight", "above"):
+        heldout.generate(tmp_path / light, ["035_power_drill"], 2, 0, light=light)
+    scene = ("data", "000001")
+    files = {}
+    for name in ("scene_gt.json", "scene_camera.json", "shown_scale.json"):
+        texts = [tmp_path.joinpath(light, *scene, name).read_text() for light in ("headlight", "above")]
+        assert texts[0] == texts[1]
+        files[name] = json.loads(texts[0])
+    model = load_mesh(heldout.MODELS / "035_power_drill" / "textured.obj")
+    for im in ("0", "2"):
+        a, b = (
+            cv2.imread(str(tmp_path.joinpath(light, *scene, "rgb", f"{int(im):06d}.jpg")))
+            for light in ("headlight", "above")
+        )
+        changed = np.abs(a.astype(int) - b.astype(int)).max(axis=2) > 12
+        K = np.asarray(files["scene_camera.json"][im]["cam_K"]).reshape(3, 3)
+        K[:2, :2] *= files["shown_scale.json"][im]  # where the frame shows the drill
+        _, depth = get_renderer().render(
+            model.content_hash, model.mesh, _pose(files["scene_gt.json"][im][0]), K, a.shape[1], a.shape[0]
+        )
+        around = cv2.dilate((depth > 0).astype(np.uint8), np.ones((11, 11), np.uint8)).astype(bool)
+        assert changed[around].sum() > 500  # the drill is lit otherwise
+        assert changed[~around].mean() < 0.001  # and nothing else changed

@@ -157,3 +157,28 @@ def test_query_only_feature_settings_share_one_library(cracker_model):
     assert key(cracker_model, with_features(retry_sigma=1.2), K_SYN, 640, 480) == base
     assert key(cracker_model, with_features(retry_contrast_threshold=0.0), K_SYN, 640, 480) == base
     assert key(cracker_model, with_features(contrast_threshold=0.03), K_SYN, 640, 480) != base
+
+
+def test_a_light_from_above_brightens_the_upper_half():
+    """``light_from`` puts the lit render's light where it says (camera axes, y down): a sphere lit from above
+    the camera is brighter in its upper half, lit from below in its lower half; without it (a headlight) the
+    two halves match."""
+    from batchpose.method.render import Renderer  # noqa: PLC0415
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    T = np.eye(4)
+    T[2, 3] = 1.0
+    r = Renderer()
+    halves = {}
+    for name, light in (("above", np.array([0.0, -1.0, -0.3])), ("below", np.array([0.0, 1.0, -0.3])), ("head", None)):
+        rgb, depth = r.render("sphere", sphere, T, K_SYN, 640, 480, "lit", light_from=light)
+        grey = rgb.astype(float).mean(axis=2)
+        on = depth > 0
+        rows = np.nonzero(on.any(axis=1))[0]
+        middle = (rows.min() + rows.max()) // 2
+        upper, lower = grey[: middle - 5][on[: middle - 5]].mean(), grey[middle + 5 :][on[middle + 5 :]].mean()
+        halves[name] = (upper, lower)
+    r.close()
+    assert halves["above"][0] > 1.25 * halves["above"][1]
+    assert halves["below"][1] > 1.25 * halves["below"][0]
+    assert abs(halves["head"][0] - halves["head"][1]) < 0.05 * halves["head"][0]

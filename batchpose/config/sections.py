@@ -45,8 +45,9 @@ class RenderConfig:
     """Template image width; 0: the data set camera's width (or 640)."""
     height: int = knob(0, ge=16, off="the camera's")
     """Template image height; 0: the data set camera's height (or 480)."""
-    shading: str = knob("flat", choices=("flat", "lit"))
-    """"flat" (albedo only, matches texture) or "lit" (a headlight plus ambient light)."""
+    shading: str = knob("lit", choices=("flat", "lit"))
+    """Template shading: "lit" (a headlight plus ambient light: curved and turned-away faces shaded, as real
+    frames show them) or "flat" (the texture's albedo alone)."""
     znear_m: float = knob(0.01, gt=0)
     """Near clipping plane of every render (templates, refinement, checks), metres."""
     zfar_m: float = 20.0

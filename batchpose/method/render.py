@@ -70,6 +70,21 @@ def _program_cache(pr):
     return ProgramCache()
 
 
+def _light_in_gl_camera(light_from: np.ndarray | None) -> np.ndarray:
+    """The pose, in the OpenGL camera's axes, of a directional light shining from ``light_from`` (OpenCV
+    camera axes; None: from the camera). pyrender's directional light shines along its node's -z."""
+    if light_from is None:
+        return np.eye(4)
+    z = _CV_TO_GL[:3, :3] @ np.asarray(light_from, dtype=float)
+    z /= np.linalg.norm(z)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    return pose
+
+
 class Renderer:
     """Renders one mesh at a time; keeps one GL context per process and per image size."""
 
@@ -125,6 +140,7 @@ class Renderer:
         shading: str = "flat",
         znear_m: float = 0.01,
         zfar_m: float = 20.0,
+        light_from: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Render a trimesh mesh.
 
@@ -134,7 +150,9 @@ class Renderer:
             cam_from_model: (4, 4) model->camera (OpenCV camera axes), metres.
             K: (3, 3) OpenCV intrinsics (pixel centres at integers).
             width, height: image size in pixels.
-            shading: "flat" (albedo) or "lit" (headlight + ambient).
+            shading: "flat" (albedo) or "lit" (one directional light + ambient).
+            light_from: with "lit", the direction towards the light in camera axes (OpenCV: x right, y down,
+                z forward); None: from the camera (a headlight).
 
         Returns:
             rgb (H, W, 3) uint8 and depth_m (H, W) float32 z-depth in metres, 0 where there is no surface.
@@ -150,7 +168,8 @@ class Renderer:
             added = [scene.add(cam, pose=model_from_cam_gl)]
             flags = pr.RenderFlags.FLAT if shading == "flat" else pr.RenderFlags.NONE
             if shading == "lit":
-                added.append(scene.add(pr.DirectionalLight(color=np.ones(3), intensity=2.5), pose=model_from_cam_gl))
+                light_pose = model_from_cam_gl @ _light_in_gl_camera(light_from)
+                added.append(scene.add(pr.DirectionalLight(color=np.ones(3), intensity=2.5), pose=light_pose))
             try:
                 color, depth = r.render(scene, flags=flags)
             finally:
