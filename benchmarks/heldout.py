@@ -108,8 +108,12 @@ def random_rotation(rng: np.random.Generator, max_roll_deg: float = 30.0) -> np.
     return _roll(rng, max_roll_deg) @ R
 
 
-def light_above(rng: np.random.Generator) -> np.ndarray:
-    """``--light above``: a direction towards a light above the camera, in its axes (x right, y down)."""
+def draw_light(light: str, stream: list[int]) -> np.ndarray | None:
+    """``--light``: None for the headlight; for ``above``, a direction towards a light above the camera, in
+    its axes (x right, y down), drawn from the random stream ``stream`` (its own, so other draws stay)."""
+    if light != "above":
+        return None
+    rng = np.random.default_rng(stream)
     v = np.array([rng.uniform(-0.6, 0.6), -1.0, rng.uniform(-0.8, 0.5)])
     return v / np.linalg.norm(v)
 
@@ -276,8 +280,7 @@ def generate(
             shown[str(2 * i)] = 1.0 - 0.01 * real.uniform(*scale_error)
             shown_K[:2, :2] *= shown[str(2 * i)]
             blur_px = real.uniform(0.0, motion_blur)
-            lit_from = light_above(np.random.default_rng([seed, k, i, 2])) if light == "above" else None
-            T, rgb, depth = _inside(rng, pose, model, renderer, K, shown_K, w, h, lit_from)
+            T, rgb, depth = _inside(rng, pose, model, renderer, K, shown_K, w, h, draw_light(light, [seed, k, i, 2]))
             occluder = usable[rng.integers(len(usable))][1] if i % 2 else None  # not a piece showing the object
             backdrop = behind(bg_depth, depth)
             img, z = compose(bg, rgb, depth, occluder, rng, backdrop, np.random.default_rng([seed, k, i]), blur_px)
@@ -305,7 +308,7 @@ class _Run:
         self.rng = np.random.default_rng([seed, k, r, 11])  # the run's draws: video, place, scale, occluder
         self.scale = 1.0 - 0.01 * self.rng.uniform(*scale_error)
         self.blur_angle = self.rng.uniform(0.0, np.pi)  # a hand-held camera sways one way for a while
-        self.light = light_above(np.random.default_rng([seed, k, r, 14])) if light == "above" else None
+        self.light = draw_light(light, [seed, k, r, 14])
 
     def write(self, scene: Path, cams: dict, gts: dict, model, renderer, usable: list, pose, first_id: int) -> None:
         """Render the run into a stretch of a video that does not show the object (``usable``: background
