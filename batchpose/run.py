@@ -184,6 +184,7 @@ def main(
                 backend=jl_backend,
                 # workers on this machine share its cores; a remote cluster's workers keep their defaults
                 threads=None if scheduler else threads_per_worker(jobs),
+                retry_lib_dirs=build_templates.library_dirs(objects_path, "retry_library"),
             )
             poses_path = estimate.main(conf, inputs, job.run_dir, overwrite)
             carried = carry.CarryInputs(

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -149,3 +150,16 @@ def test_a_later_run_in_the_same_process_keeps_its_own_ids(own_run, tmp_path, ca
     out = tmp_path / "demo"
     run.main(PIPELINE, ROOT / "data_manifest" / "demo.yaml", out, cache_dir=cache_dir, jobs=1, report=False, limit=1)
     assert pd.read_csv(out / "poses.csv")["obj_id"].tolist() == [8]  # the gelatin box's YCB-Video id
+
+
+def test_objects_json_names_both_template_libraries_with_the_same_views(own_run):
+    """The default's second library (``render.retry_shading: lit``) is built and named beside the first; it
+    has the very views of the first (a record's template ids mean the same in both), other descriptors."""
+    from batchpose.io import library  # noqa: PLC0415
+
+    for name, entry in json.loads((own_run / "objects.json").read_text()).items():
+        first, second = library.load(Path(entry["library"])), library.load(Path(entry["retry_library"]))
+        assert entry["library"] != entry["retry_library"], name
+        assert first.n_views == second.n_views == 320, name
+        np.testing.assert_allclose(first.cams_from_model(), second.cams_from_model(), atol=1e-9)
+        assert len(first.desc) != len(second.desc) or not np.array_equal(first.desc, second.desc), name

@@ -159,6 +159,29 @@ def test_query_only_feature_settings_share_one_library(cracker_model):
     assert key(cracker_model, with_features(contrast_threshold=0.03), K_SYN, 640, 480) != base
 
 
+def test_the_retry_library_is_the_library_of_its_shading(cracker_model):
+    """``render.retry_shading`` chooses a second library, not how the first is rendered: the first keeps its
+    key, and the second is the very library a run with that shading first uses (one cache entry for both).
+    "none", or the first library's shading, means no second library."""
+    import dataclasses  # noqa: PLC0415
+
+    conf = EstimatorConfig()
+    key = library.library_key
+
+    def with_render(**kw) -> EstimatorConfig:
+        return dataclasses.replace(conf, render=dataclasses.replace(conf.render, **kw))
+
+    flat, lit = with_render(shading="flat", retry_shading="none"), with_render(shading="lit", retry_shading="none")
+    both = with_render(shading="flat", retry_shading="lit")
+    assert key(cracker_model, both, K_SYN, 640, 480) == key(cracker_model, flat, K_SYN, 640, 480)
+    second = library.retry_library_conf(both)
+    assert second is not None
+    assert key(cracker_model, second, K_SYN, 640, 480) == key(cracker_model, lit, K_SYN, 640, 480)
+    assert key(cracker_model, flat, K_SYN, 640, 480) != key(cracker_model, lit, K_SYN, 640, 480)
+    assert library.retry_library_conf(flat) is None
+    assert library.retry_library_conf(with_render(shading="lit", retry_shading="lit")) is None
+
+
 def test_a_light_from_above_brightens_the_upper_half():
     """``light_from`` puts the lit render's light where it says (camera axes, y down): a sphere lit from above
     the camera is brighter in its upper half, lit from below in its lower half; without it (a headlight) the

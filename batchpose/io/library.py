@@ -7,6 +7,7 @@ temporary folder and renamed when complete, so a killed build never leaves a lib
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import shutil
@@ -38,19 +39,33 @@ def default_cache_dir() -> Path:
 QUERY_ONLY_FEATURES = ("retry_contrast_threshold", "retry_sigma")
 
 
+#: RenderConfig fields that choose which libraries a run uses, not how one is rendered: left out of the key.
+QUERY_ONLY_RENDER = ("retry_shading",)
+
+
 def library_key(model: ObjectModel, conf: EstimatorConfig, K: np.ndarray, width: int, height: int) -> str:
     features = {k: v for k, v in to_dict(conf.features).items() if k not in QUERY_ONLY_FEATURES}
+    render = {k: v for k, v in to_dict(conf.render).items() if k not in QUERY_ONLY_RENDER}
     return config_hash(
         LIBRARY_FORMAT,
         model.content_hash,
         model.scale,
         conf.mesh,
-        conf.render,
+        render,
         features,
         np.round(np.asarray(K, float), 4).tolist(),
         width,
         height,
     )
+
+
+def retry_library_conf(conf: EstimatorConfig) -> EstimatorConfig | None:
+    """The config the second library (``render.retry_shading``) is built with: ``conf`` but for the
+    shading. None: no second library ("none", or the shading of the first)."""
+    shading = conf.render.retry_shading
+    if shading in ("none", conf.render.shading):
+        return None
+    return dataclasses.replace(conf, render=dataclasses.replace(conf.render, shading=shading, retry_shading="none"))
 
 
 def library_dir(cache_dir: Path, model: ObjectModel, key: str) -> Path:

@@ -54,6 +54,7 @@ class PoseEstimator:
         obj_ids: obj_name -> numeric id for records (BOP obj_id); optional.
         models: obj_name -> ObjectModel, needed (with ``renderer``) for ``refine.enabled``.
         renderer: a :class:`batchpose.method.render.Renderer` (or anything with its ``render`` method).
+        retry_libraries: obj_name -> its second library (``render.retry_shading``); optional.
     """
 
     def __init__(
@@ -63,9 +64,10 @@ class PoseEstimator:
         obj_ids: dict[str, int] | None = None,
         models: dict | None = None,
         renderer=None,
+        retry_libraries: dict[str, TemplateLibrary] | None = None,
     ) -> None:
         self.conf = conf
-        self.objects = Objects(conf, libraries, obj_ids, models, renderer)
+        self.objects = Objects(conf, libraries, obj_ids, models, renderer, retry_libraries)
 
     def warm_up(self) -> None:
         """Build every object's library index and render each mesh once (:meth:`Objects.warm_up`)."""

@@ -35,6 +35,8 @@ class Objects:
         obj_ids: obj_name -> numeric id for records (BOP obj_id); optional.
         models: obj_name -> ObjectModel, needed (with ``renderer``) for refinement, tracking and the checks.
         renderer: a :class:`batchpose.method.render.Renderer` (or anything with its ``render`` method).
+        retry_libraries: obj_name -> its second library (``render.retry_shading``), which
+            :attr:`retry_objects` matches against.
     """
 
     def __init__(
@@ -44,9 +46,11 @@ class Objects:
         obj_ids: dict[str, int] | None = None,
         models: dict | None = None,
         renderer=None,
+        retry_libraries: dict[str, TemplateLibrary] | None = None,
     ) -> None:
         self.conf = conf
         self.libraries = libraries
+        self.retry_libraries = retry_libraries or {}
         self.obj_ids = obj_ids or {}
         self.models = models or {}
         self.renderer = renderer
@@ -70,6 +74,8 @@ class Objects:
             return  # needs no matching
         for name in self.libraries:
             self.library_index(name)
+            if self.retry_objects is not None and name in self.retry_libraries:
+                self.retry_objects.library_index(name)
             if self.can_render(name):
                 lib = self.libraries[name]
                 self.render(name, lib.cam_from_model(0), Camera(lib.K, lib.width, lib.height))
@@ -105,6 +111,18 @@ class Objects:
             lib = self.libraries[name]
             self._lib_index[name] = flann_index(lib.desc, self.conf.match, keep_in=lib.folder)
         return self._lib_index[name]
+
+    @functools.cached_property
+    def retry_objects(self) -> Objects | None:
+        """These objects with their second libraries (``render.retry_shading``) for the objects that have
+        one; the detectors and the mesh's derived data are shared. None: no second library."""
+        if not self.retry_libraries:
+            return None
+        other = Objects(self.conf, self.retry_libraries, self.obj_ids, self.models, self.renderer)
+        other.sift, other._retry_sift = self.sift, self._retry_sift
+        other._flips, other._surfaces, other._hulls = self._flips, self._surfaces, self._hulls
+        other._stable = self._stable
+        return other
 
     @functools.cached_property
     def joint_index(self) -> JointIndex | None:

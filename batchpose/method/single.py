@@ -2,12 +2,14 @@
 
 For each object: the matching passes (:func:`batchpose.method.passes.find_passes`: whole frame, fine pass,
 locator) -> refinement of the hypotheses -> plausibility -> the alternatives and planar checks -> polish ->
-confidence (:func:`estimate_object`). Then the objects not found, or found weakly, are estimated again from
-keypoints detected at a lower contrast threshold (:func:`retry`).
+confidence (:func:`estimate_object`). Then the objects not found, or found weakly, are matched again against
+their second library (:func:`retry_library`), and estimated again from keypoints detected at a lower contrast
+threshold (:func:`retry`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import cv2
@@ -74,8 +76,9 @@ def estimate_image(
         rec.timings["sift"] = t_sift
         rec.timings["presence"] = t_presence  # (like SIFT, the frame's lookup: every pair records it)
         records.append(rec)
+    gone = frozenset(r.obj_name for r in records if r.status == "absent")
+    retry_library(objects, shot, records, keys, quick | no_retry | gone)
     if conf.features.retry_contrast_threshold > 0:
-        gone = frozenset(r.obj_name for r in records if r.status == "absent")
         retry(objects, shot, records, quick | no_retry | gone)
     return records
 
@@ -119,6 +122,48 @@ def presence_votes(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> 
                           objects.conf.match, cam.width, cam.height)  # fmt: skip
 
 
+def to_retry(objects: Objects, records: list[PoseRecord], skip) -> list[int]:
+    """The records a retry estimates again: not found, or ok with a confidence below ``verify_below``; not
+    the objects in ``skip``."""
+    weak = objects.conf.verify_below
+    return [
+        i
+        for i, r in enumerate(records)
+        if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in skip
+    ]
+
+
+def keep_better(shot: Shot, records: list[PoseRecord], i: int, rec: PoseRecord, how: str) -> None:
+    """A retry's record ``rec`` in place of ``records[i]`` when it is ok and more confident (the reason says
+    it was ``how`` found; a replaced ok pose goes into ``shot.replaced``); either way, the pair's time is both
+    attempts'."""
+    first = records[i]
+    for k, v in first.timings.items():
+        rec.timings[k] = rec.timings.get(k, 0.0) + v
+    if rec.ok and (not first.ok or rec.confidence > first.confidence):
+        rec.reason = f"found with {how}"
+        records[i] = rec
+        if first.ok:
+            shot.replaced[id(rec)] = (rec, first)
+    else:
+        first.timings = rec.timings
+
+
+def retry_library(objects: Objects, shot: Shot, records: list[PoseRecord], keys: Keypoints, skip) -> None:
+    """``render.retry_shading``: each object a full estimate did not find, or found only weakly, estimated
+    once more from the same keypoints against its second library (:attr:`Objects.retry_objects`); the new
+    record is kept when it is ok and more confident. Not the objects in ``skip``."""
+    other = objects.retry_objects
+    if other is None:
+        return
+    todo = [i for i in to_retry(objects, records, skip) if records[i].obj_name in other.libraries]
+    # The shot's library queries are the first library's: this one asks its own.
+    again = dataclasses.replace(shot, nearest={}, joint=None, joint_desc=None)
+    for i in todo:
+        rec = estimate_object(other, again, records[i].obj_name, keys)
+        keep_better(shot, records, i, rec, f"the {objects.conf.render.retry_shading} templates")
+
+
 def retry(objects: Objects, shot: Shot, records: list[PoseRecord], skip: frozenset[str]) -> None:
     """``features.retry_contrast_threshold``: estimate each object a full estimate did not find, or found
     only weakly (confidence below ``verify_below``), once more from keypoints detected at the lower
@@ -133,12 +178,7 @@ def retry(objects: Objects, shot: Shot, records: list[PoseRecord], skip: frozens
 
 def _retry_once(objects: Objects, shot: Shot, records: list[PoseRecord], skip, sigma: float) -> bool:
     """One retry stage (see :func:`retry`); False when no object needed it."""
-    weak = objects.conf.verify_below
-    todo = [
-        i
-        for i, r in enumerate(records)
-        if (r.status in NOT_FOUND or (r.ok and r.confidence < weak)) and r.obj_name not in skip
-    ]
+    todo = to_retry(objects, records, skip)
     if not todo:
         return False
     t0 = time.perf_counter()
@@ -149,18 +189,9 @@ def _retry_once(objects: Objects, shot: Shot, records: list[PoseRecord], skip, s
     t_sift = (time.perf_counter() - t0) / len(todo)
     how = f"contrast {fc.retry_contrast_threshold:g}" + ("" if sigma == fc.sigma else f", sigma {sigma:g}")
     for i in todo:
-        first = records[i]
-        rec = estimate_object(objects, shot, first.obj_name, keys, sift=sift)
-        for k, v in first.timings.items():  # every attempt's time is the pair's
-            rec.timings[k] = rec.timings.get(k, 0.0) + v
+        rec = estimate_object(objects, shot, records[i].obj_name, keys, sift=sift)
         rec.timings["sift"] = rec.timings.get("sift", 0.0) + t_sift
-        if rec.ok and (not first.ok or rec.confidence > first.confidence):
-            rec.reason = f"found with keypoints at {how}"
-            records[i] = rec
-            if first.ok:
-                shot.replaced[id(rec)] = (rec, first)
-        else:
-            first.timings = rec.timings
+        keep_better(shot, records, i, rec, f"keypoints at {how}")
     return True
 
 

@@ -25,6 +25,7 @@ from batchpose.io.library import (
     is_cached,
     library_dir,
     library_key,
+    retry_library_conf,
     save,
 )
 from batchpose.method import presence
@@ -163,11 +164,15 @@ class TemplateInputs:
 
 def main(conf: EstimatorConfig, inputs: TemplateInputs, run_dir: Path, overwrite: bool = False) -> Path:
     """Build (or find in the cache) every object's template library and write ``run_dir/objects.json``
-    (each object's id, mesh, points, diameter and library folder); returns its path. ``overwrite`` does not
+    (each object's id, mesh, points, diameter, library folder and ``render.retry_shading``'s second library
+    folder); returns its path. ``overwrite`` does not
     rebuild cached libraries: their key is the hash of everything that makes them."""
     t0 = time.perf_counter()
     m = inputs.models
     lib_dirs = build_all(m, conf, inputs.K, inputs.width, inputs.height, inputs.cache_dir, jobs=inputs.jobs)
+    retry_dirs: dict[str, Path] = {}
+    if (retry_conf := retry_library_conf(conf)) is not None:  # render.retry_shading
+        retry_dirs = build_all(m, retry_conf, inputs.K, inputs.width, inputs.height, inputs.cache_dir, inputs.jobs)
     log.info("template libraries ready for %d objects in %.1f s", len(m), time.perf_counter() - t0)
     if inputs.presence:
         t0 = time.perf_counter()
@@ -180,12 +185,14 @@ def main(conf: EstimatorConfig, inputs: TemplateInputs, run_dir: Path, overwrite
             "points": str(inputs.points[name]) if inputs.points.get(name) else None,
             "diameter_m": model.diameter_m,
             "library": str(lib_dirs[name]),
+            "retry_library": str(retry_dirs[name]) if name in retry_dirs else None,
         }
         for name, model in m.items()
     }
     return write_text_atomic(Path(run_dir) / "objects.json", json.dumps(objects, indent=2), encoding=None)
 
 
-def library_dirs(objects_json: Path) -> dict[str, Path]:
-    """object name -> library folder, from the ``objects.json`` :func:`main` wrote."""
-    return {name: Path(o["library"]) for name, o in json.loads(Path(objects_json).read_text()).items()}
+def library_dirs(objects_json: Path, which: str = "library") -> dict[str, Path]:
+    """object name -> library folder, from the ``objects.json`` :func:`main` wrote; ``which="retry_library"``:
+    the second libraries (``render.retry_shading``; empty without them)."""
+    return {name: Path(o[which]) for name, o in json.loads(Path(objects_json).read_text()).items() if o.get(which)}

@@ -58,6 +58,7 @@ class EstimateInputs:
         backend: joblib backend ("loky", or "dask" inside a ``dask.distributed`` client context).
         threads: OpenCV / renderer threads per worker (None: their defaults).
         chunk_size: frames per worker task when not tracking.
+        retry_lib_dirs: object name -> its second library folder (``render.retry_shading``; empty: none).
     """
 
     source: FrameSource
@@ -72,6 +73,7 @@ class EstimateInputs:
     backend: str = "loky"
     threads: int | None = None
     chunk_size: int = 2
+    retry_lib_dirs: dict[str, Path] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -84,6 +86,7 @@ class WorkerSetup:
     mesh_paths: dict[str, str]
     mesh_cache: str | None = None
     threads: int | None = None
+    retry_lib_dirs: dict[str, str] = field(default_factory=dict)
 
 
 @dataclass
@@ -105,10 +108,11 @@ _WORKER: dict = {}
 
 def _estimator(setup: WorkerSetup) -> PoseEstimator:
     """The worker's estimator, built on first use and kept for the rest of the run."""
-    key = config_hash(setup.conf_dict, setup.lib_dirs, setup.mesh_paths, setup.obj_ids)
+    key = config_hash(setup.conf_dict, setup.lib_dirs, setup.retry_lib_dirs, setup.mesh_paths, setup.obj_ids)
     if _WORKER.get("key") != key:
         conf = load_estimator_config(setup.conf_dict)
         libs = {name: library.load(Path(d)) for name, d in setup.lib_dirs.items()}
+        retry_libs = {name: library.load(Path(d)) for name, d in setup.retry_lib_dirs.items()}
         models, renderer = {}, None
         if conf.refine.enabled or conf.track.enabled:
             from batchpose.method.render import get_renderer  # noqa: PLC0415 - GL only where it renders
@@ -120,7 +124,7 @@ def _estimator(setup: WorkerSetup) -> PoseEstimator:
             }
             renderer = get_renderer()
         _WORKER["key"] = key
-        _WORKER["estimator"] = PoseEstimator(conf, libs, setup.obj_ids, models=models, renderer=renderer)
+        _WORKER["estimator"] = PoseEstimator(conf, libs, setup.obj_ids, models, renderer, retry_libs)
         _WORKER["estimator"].warm_up()
     return _WORKER["estimator"]
 
@@ -260,6 +264,7 @@ def _run_chunks(conf: EstimatorConfig, inputs: EstimateInputs, shard_dir: Path, 
         {k: str(v) for k, v in inputs.mesh_paths.items()},
         str(inputs.mesh_cache) if inputs.mesh_cache else None,
         inputs.threads,
+        {k: str(v) for k, v in inputs.retry_lib_dirs.items()},
     )
     # Workers on this machine save their progress; a cluster's may not see the run directory.
     saves = str(shard_dir) if inputs.backend == "loky" else None

@@ -1,0 +1,62 @@
+"""``render.retry_shading``: a second template library that the objects a full estimate misses, or finds
+only weakly, are matched against once more (:func:`batchpose.method.single.retry_library`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from batchpose.config import EstimatorConfig
+from batchpose.core.frames import Camera
+from batchpose.method.estimator import PoseEstimator
+from batchpose.method.render import get_renderer
+from tests.conftest import K_SYN
+from tests.test_estimate_synthetic import add_error, compose, random_pose
+
+
+def scrambled(library):
+    """The library with its descriptors dealt to the wrong keypoints: it matches, but to nowhere consistent
+    (and has no cached index: ``folder`` is None)."""
+    perm = np.random.default_rng(0).permutation(len(library.desc))
+    return dataclasses.replace(library, desc=library.desc[perm], folder=None)
+
+
+def estimator(model, first, second=None) -> PoseEstimator:
+    """Flat templates first, ``second`` as the lit retry library; no other retry, no presence check."""
+    conf = EstimatorConfig()
+    conf = dataclasses.replace(
+        conf,
+        render=dataclasses.replace(conf.render, shading="flat", retry_shading="lit"),
+        features=dataclasses.replace(conf.features, retry_contrast_threshold=0.0),
+        match=dataclasses.replace(conf.match, presence_votes=0),
+    )
+    second = None if second is None else {model.name: second}
+    return PoseEstimator(conf, {model.name: first}, models={model.name: model}, renderer=get_renderer(),
+                         retry_libraries=second)  # fmt: skip
+
+
+def test_the_second_library_finds_what_the_first_misses_and_leaves_confident_poses(cracker_model, cracker_library):
+    """With a first library that cannot match the box, the second one finds it, within 0.1 d, and the
+    record says so; with a good first library, a confident pose is exactly what it is without a second
+    library (the second, here useless, one is not asked)."""
+    name, cam = cracker_model.name, Camera(K_SYN, 640, 480)
+    pts = np.asarray(cracker_model.mesh.vertices)[::8]
+    bad = scrambled(cracker_library)
+    missing = estimator(cracker_model, bad)
+    rescued = estimator(cracker_model, bad, cracker_library)
+    alone = estimator(cracker_model, cracker_library)
+    spoilt = estimator(cracker_model, cracker_library, bad)
+    rng = np.random.default_rng(5)
+    for _ in range(2):
+        T = random_pose(rng, cracker_model.center_m)
+        img = compose(rng, cracker_model, T)
+        a = missing.estimate_image(img, cam, [name])[0]
+        assert not a.ok or a.confidence < missing.conf.verify_below, (a.status, a.reason)
+        b = rescued.estimate_image(img, cam, [name])[0]
+        assert b.ok and b.reason == "found with the lit templates", (b.status, b.reason)
+        assert add_error(b.cam_from_model, T, pts) < 0.1 * cracker_model.diameter_m
+        c, d = alone.estimate_image(img, cam, [name])[0], spoilt.estimate_image(img, cam, [name])[0]
+        assert c.ok and c.confidence >= alone.conf.verify_below
+        assert (d.status, d.reason) == (c.status, c.reason)
+        np.testing.assert_array_equal(d.cam_from_model, c.cam_from_model)
