@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 
 from batchpose.config import EstimatorConfig
 from batchpose.core.frames import Camera
@@ -60,3 +61,18 @@ def test_the_second_library_finds_what_the_first_misses_and_leaves_confident_pos
         assert c.ok and c.confidence >= alone.conf.verify_below
         assert (d.status, d.reason) == (c.status, c.reason)
         np.testing.assert_array_equal(d.cam_from_model, c.cam_from_model)
+
+
+def test_a_worker_loads_a_second_library_only_when_it_is_asked_for(cracker_library, tmp_path):
+    """The workers' second libraries load on first use: naming a folder reads nothing (a missing one fails
+    only when asked for, with the error that names it), and a library asked for twice is loaded once."""
+    from batchpose.errors import DataError  # noqa: PLC0415
+    from batchpose.stages.estimate import LazyLibraries  # noqa: PLC0415
+
+    libs = LazyLibraries({"cracker": str(cracker_library.folder), "gone": str(tmp_path / "gone")})
+    assert len(libs) == 2 and "gone" in libs and "other" not in libs and list(libs) == ["cracker", "gone"]
+    first = libs["cracker"]
+    np.testing.assert_array_equal(first.desc, cracker_library.desc)
+    assert libs["cracker"] is first
+    with pytest.raises(DataError, match="gone: template library is unreadable"):
+        libs["gone"]

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Mapping
 
 import cv2
 import numpy as np
@@ -64,7 +65,7 @@ class PoseEstimator:
         obj_ids: dict[str, int] | None = None,
         models: dict | None = None,
         renderer=None,
-        retry_libraries: dict[str, TemplateLibrary] | None = None,
+        retry_libraries: Mapping[str, TemplateLibrary] | None = None,
     ) -> None:
         self.conf = conf
         self.objects = Objects(conf, libraries, obj_ids, models, renderer, retry_libraries)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -36,17 +37,18 @@ class Objects:
         models: obj_name -> ObjectModel, needed (with ``renderer``) for refinement, tracking and the checks.
         renderer: a :class:`batchpose.method.render.Renderer` (or anything with its ``render`` method).
         retry_libraries: obj_name -> its second library (``render.retry_shading``), which
-            :attr:`retry_objects` matches against.
+            :attr:`retry_objects` matches against; a mapping that loads each library when first asked for
+            keeps the ones never needed out of memory.
     """
 
     def __init__(
         self,
         conf: EstimatorConfig,
-        libraries: dict[str, TemplateLibrary],
+        libraries: Mapping[str, TemplateLibrary],
         obj_ids: dict[str, int] | None = None,
         models: dict | None = None,
         renderer=None,
-        retry_libraries: dict[str, TemplateLibrary] | None = None,
+        retry_libraries: Mapping[str, TemplateLibrary] | None = None,
     ) -> None:
         self.conf = conf
         self.libraries = libraries
@@ -74,8 +76,6 @@ class Objects:
             return  # needs no matching
         for name in self.libraries:
             self.library_index(name)
-            if self.retry_objects is not None and name in self.retry_libraries:
-                self.retry_objects.library_index(name)
             if self.can_render(name):
                 lib = self.libraries[name]
                 self.render(name, lib.cam_from_model(0), Camera(lib.K, lib.width, lib.height))

@@ -17,6 +17,7 @@ Hough vote instead of the matching passes, the retries and the refinement.
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,7 +52,7 @@ class JointIndex:
     pts: np.ndarray
 
 
-def joint_index(libraries: dict[str, TemplateLibrary], conf: MatchConfig) -> JointIndex | None:
+def joint_index(libraries: Mapping[str, TemplateLibrary], conf: MatchConfig) -> JointIndex | None:
     """The joint index over ``libraries`` (None when they hold under 2 descriptors). Kept beside the
     libraries' cache folders (in a folder named by them) when they all have one, like each library's own
     index (:func:`batchpose.method.correspondences.flann_index`)."""
@@ -64,7 +65,7 @@ def joint_index(libraries: dict[str, TemplateLibrary], conf: MatchConfig) -> Joi
     return None if index is None else JointIndex(names, index, desc, owner, local, pts)
 
 
-def index_folder(libraries: dict[str, TemplateLibrary]) -> Path | None:
+def index_folder(libraries: Mapping[str, TemplateLibrary]) -> Path | None:
     """The folder the joint index is kept in: beside the libraries' folders, named by them (None when a
     library has no folder, or they are in different places)."""
     folders = [lib.folder for lib in libraries.values()]

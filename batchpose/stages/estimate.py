@@ -17,7 +17,7 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +33,7 @@ from batchpose.io.files import write_parquet_atomic
 from batchpose.io.mesh import load_mesh, quiet_mesh_warnings
 from batchpose.method.estimator import PoseEstimator
 from batchpose.method.sequence import Sequence, Stamp, is_next
+from batchpose.method.templates import TemplateLibrary
 from batchpose.stages import up_to_date
 from batchpose.stages.checkpoints import ChunkFiles, Saver, chunk_key
 from batchpose.stages.workers import limit_threads, loky_options, relax_loky_leak_check
@@ -106,13 +107,36 @@ class Chunk:
 _WORKER: dict = {}
 
 
+class LazyLibraries(Mapping[str, TemplateLibrary]):
+    """Object name -> template library, loaded from its folder when first asked for: the second libraries
+    (``render.retry_shading``), which most objects of most runs never need."""
+
+    def __init__(self, dirs: dict[str, str]) -> None:
+        self._dirs = dirs
+        self._loaded: dict[str, TemplateLibrary] = {}
+
+    def __getitem__(self, name: str) -> TemplateLibrary:
+        if name not in self._loaded:
+            self._loaded[name] = library.load(Path(self._dirs[name]))
+        return self._loaded[name]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._dirs
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._dirs)
+
+    def __len__(self) -> int:
+        return len(self._dirs)
+
+
 def _estimator(setup: WorkerSetup) -> PoseEstimator:
     """The worker's estimator, built on first use and kept for the rest of the run."""
     key = config_hash(setup.conf_dict, setup.lib_dirs, setup.retry_lib_dirs, setup.mesh_paths, setup.obj_ids)
     if _WORKER.get("key") != key:
         conf = load_estimator_config(setup.conf_dict)
         libs = {name: library.load(Path(d)) for name, d in setup.lib_dirs.items()}
-        retry_libs = {name: library.load(Path(d)) for name, d in setup.retry_lib_dirs.items()}
+        retry_libs = LazyLibraries(setup.retry_lib_dirs)
         models, renderer = {}, None
         if conf.refine.enabled or conf.track.enabled:
             from batchpose.method.render import get_renderer  # noqa: PLC0415 - GL only where it renders
