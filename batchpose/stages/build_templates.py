@@ -165,8 +165,8 @@ class TemplateInputs:
 def main(conf: EstimatorConfig, inputs: TemplateInputs, run_dir: Path, overwrite: bool = False) -> Path:
     """Build (or find in the cache) every object's template library and write ``run_dir/objects.json``
     (each object's id, mesh, points, diameter, library folder and ``render.retry_shading``'s second library
-    folder); returns its path. ``overwrite`` does not
-    rebuild cached libraries: their key is the hash of everything that makes them."""
+    folder); returns its path. ``overwrite`` does not rebuild cached libraries: their key is the hash of
+    everything that makes them."""
     t0 = time.perf_counter()
     m = inputs.models
     lib_dirs = build_all(m, conf, inputs.K, inputs.width, inputs.height, inputs.cache_dir, jobs=inputs.jobs)
