@@ -157,6 +157,8 @@ def retry_library(objects: Objects, shot: Shot, records: list[PoseRecord], keys:
     if other is None:
         return
     todo = [i for i in to_retry(objects, records, skip) if records[i].obj_name in other.libraries]
+    if not todo:
+        return
     # The shot's library queries are the first library's: this one asks its own.
     again = dataclasses.replace(shot, nearest={}, joint=None, joint_desc=None)
     for i in todo:
