@@ -25,17 +25,17 @@ from tests.conftest import ROOT
 
 # A pin changes only when a default, a field or a pipeline changes on purpose. The template libraries' cache
 # keys hash only the sections that make a library (io.library).
-DEFAULT_HASH = "c75cbdc6d1dd5f13"
-DEFAULT_LAYOUT_HASH = "582a685265c023dc"  # also pins the fields' order, as config.yaml writes them
+DEFAULT_HASH = "3e1d8ab8f0d0ba6a"
+DEFAULT_LAYOUT_HASH = "84bf59ecb669f561"  # also pins the fields' order, as config.yaml writes them
 PIPELINE_HASHES = {
-    "fast.yaml": "67536bebb091f524",
-    "gnc_pose.yaml": "c75cbdc6d1dd5f13",
-    "no_geom_weights.yaml": "e74000e09f903a38",
-    "oracle_roi.yaml": "c1482faf27a7b4fa",
-    "paper.yaml": "6d41caf0cd6758c6",
-    "ransac_only.yaml": "a6d698dcde2bb32b",
-    "rgbd.yaml": "1974c34c148d75e2",
-    "tp_ub.yaml": "0cca756aed3f692c",
+    "fast.yaml": "0e109e69ba43ae95",
+    "gnc_pose.yaml": "3e1d8ab8f0d0ba6a",
+    "no_geom_weights.yaml": "9f00ddd2de61eee3",
+    "oracle_roi.yaml": "459f90f0e4487393",
+    "paper.yaml": "ed3e66089ad3f87a",
+    "ransac_only.yaml": "feab3dd4aa21882e",
+    "rgbd.yaml": "cd11afdd03215d46",
+    "tp_ub.yaml": "b7edeeedbe00d280",
 }
 
 

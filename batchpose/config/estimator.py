@@ -68,6 +68,12 @@ class EstimatorConfig:
     probability that the pose is on the object (``verification`` in poses.parquet;
     :mod:`batchpose.method.score`). An ok pose scoring under this is low_confidence. 0: no score (the
     paper's pipelines)."""
+    retry_rejected: bool = True
+    """An ok pose the verification score (``min_verification``) rejects gives its object the retries a
+    missed object gets: matched again against its second library (``render.retry_shading``), then from
+    keypoints at the lower contrast threshold (``features.retry_*``). The frame's keypoints are detected
+    again, once a frame that has such a pose; a new pose is kept only when it passes the same score. False:
+    a rejected pose stays low_confidence."""
     verified_tracks: bool = True
     """Where the mesh at a pose fails the texture match that lets a track start, survive a refresh or carry a
     pose into the next frame (``track.min_match``), let it pass when the verification score does

@@ -9,7 +9,8 @@ goes through these steps (docs/method.md):
 2. estimate: tracked (:func:`batchpose.method.tracked.estimate_tracked`: follow, estimate the rest afresh,
    seed) or fresh (:func:`batchpose.method.single.estimate_image`);
 3. the weak-pose check (:func:`batchpose.method.verify.verify_weak`);
-4. the verification score (:func:`batchpose.method.score.verify_poses`);
+4. the verification score (:func:`batchpose.method.score.verify_poses`), and the retries for an object whose
+   pose it rejects (:func:`batchpose.method.single.retry_rejected`);
 5. one image region, one object (:func:`batchpose.method.region.claim_regions`);
 6. depth: alignment and search (:func:`batchpose.method.with_depth.use_depth`);
 7. the plane search (:func:`batchpose.method.on_plane.use_plane`), and the verification score of the poses
@@ -20,6 +21,7 @@ goes through these steps (docs/method.md):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from collections.abc import Mapping
@@ -37,7 +39,7 @@ from batchpose.method.records import FAILED, Replaced, failure_status, to_full_s
 from batchpose.method.region import claim_regions
 from batchpose.method.score import verify_poses
 from batchpose.method.sequence import Sequence
-from batchpose.method.single import estimate_image
+from batchpose.method.single import estimate_image, has_retries, retry_rejected
 from batchpose.method.templates import TemplateLibrary
 from batchpose.method.tracked import estimate_tracked
 from batchpose.method.verify import verify_weak
@@ -160,8 +162,17 @@ class PoseEstimator:
             steps.append(("verify_weak", lambda: verify_weak(objects, frame, rgb, records, replaced)))
         checked: dict[int, np.ndarray] = {}  # the poses scored, so the searches' new ones are scored after them
         verify = ("verify_poses", lambda: verify_poses(objects, frame, rgb, records, sequence, checked))
+        was_ok: list[PoseRecord] = []  # the ok poses the verification score is first given
+
+        def verify_first() -> None:
+            was_ok[:] = [r for r in records if r.ok]
+            verify_poses(objects, frame, rgb, records, sequence, checked)
+
         if conf.min_verification > 0:
-            steps.append(verify)
+            steps.append(("verify_poses", verify_first))
+            if conf.retry_rejected:
+                retried = functools.partial(self._retry_rejected, frame, rgb, records, sequence, checked, was_ok)
+                steps.append(("retry_rejected", retried))
         if conf.region.max_overlap > 0:
             steps.append(("claim_regions", lambda: claim_regions(objects, frame, rgb, records, sequence)))
         if searched:
@@ -177,6 +188,27 @@ class PoseEstimator:
                 log.warning("%s: %s failed (%s: %s); poses as estimated before it", frame.frame_id, name,
                             type(e).__name__, e)  # fmt: skip
                 log.debug("%s failed", name, exc_info=True)
+
+    def _retry_rejected(
+        self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord], sequence: Sequence, checked, was_ok
+    ) -> None:
+        """``retry_rejected``: the retries for each object whose ok pose (among ``was_ok``) the verification
+        score rejected, and the score of what they find (``checked``: the poses :func:`verify_poses` scored).
+        ``records`` changes only when all of it ran."""
+        first = {
+            r.obj_name: r for r in was_ok
+            if not r.ok and checked.get(id(r)) is not None and has_retries(self.objects, r.obj_name)
+        }  # fmt: skip
+        if not first:
+            return
+        trial = list(records)
+        retry_rejected(self.objects, rgb, frame.camera, frame.frame_id, frame.gt, trial, list(first))
+        verify_poses(self.objects, frame, rgb, trial, sequence, checked)
+        for rec in trial:
+            old = first.get(rec.obj_name)
+            if old is not None and rec is not old:
+                rec.reason += f", after the verification score rejected the first pose ({old.verification:.2f})"
+        records[:] = trial
 
 
 def working_size(frame: Frame, rgb: np.ndarray, max_side_px: int) -> tuple[Frame, np.ndarray, np.ndarray]:

@@ -4,7 +4,8 @@ For each object: the matching passes (:func:`batchpose.method.passes.find_passes
 locator) -> refinement of the hypotheses -> plausibility -> the alternatives and planar checks -> polish ->
 confidence (:func:`estimate_object`). Then the objects not found, or found weakly, are matched again against
 their second library (:func:`retry_library`), and estimated again from keypoints detected at a lower contrast
-threshold (:func:`retry`).
+threshold (:func:`retry`); the estimator gives the same retries to an object whose pose the verification
+score rejects (:func:`retry_rejected`).
 """
 
 from __future__ import annotations
@@ -57,14 +58,7 @@ def estimate_image(
     for name in obj_names:
         if name not in objects.libraries:
             raise BatchposeError(f"{frame_id}: no template library for object {name!r}")
-    t0 = time.perf_counter()
-    gray = to_gray(rgb)
-    xy_q, desc_q, shapes_q = detect_shapes(gray, conf.features, sift=objects.sift)
-    t_sift = time.perf_counter() - t0
-    keys = Keypoints(xy_q, desc_q, shapes_q, objects=objects)
-    checks = conf.planar_spread > 0 or conf.alternatives > 0
-    gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
-    shot = Shot(gray, camera, frame_id, gt_by_name, LazyLab(rgb, gray) if checks else None)
+    shot, keys, t_sift = look(objects, rgb, camera, frame_id, gt)
     if replaced is not None:
         shot.replaced = replaced
     t0 = time.perf_counter()
@@ -81,6 +75,40 @@ def estimate_image(
     if conf.features.retry_contrast_threshold > 0:
         retry(objects, shot, records, quick | no_retry | gone)
     return records
+
+
+def look(objects: Objects, rgb: np.ndarray, camera: Camera, frame_id: str, gt: tuple[ObjectPose, ...]):
+    """The image's :class:`Shot` and its whole-frame keypoints, and the seconds SIFT took."""
+    conf = objects.conf
+    t0 = time.perf_counter()
+    gray = to_gray(rgb)
+    xy_q, desc_q, shapes_q = detect_shapes(gray, conf.features, sift=objects.sift)
+    t_sift = time.perf_counter() - t0
+    keys = Keypoints(xy_q, desc_q, shapes_q, objects=objects)
+    checks = conf.planar_spread > 0 or conf.alternatives > 0
+    gt_by_name = {p.obj_name: p.cam_from_model for p in gt}
+    return Shot(gray, camera, frame_id, gt_by_name, LazyLab(rgb, gray) if checks else None), keys, t_sift
+
+
+def has_retries(objects: Objects, name: str) -> bool:
+    """Whether an object has a retry to be given: a second library, or ``features.retry_contrast_threshold``."""
+    return name in objects.retry_libraries or objects.conf.features.retry_contrast_threshold > 0
+
+
+def retry_rejected(
+    objects: Objects, rgb: np.ndarray, camera: Camera, frame_id: str, gt, records: list[PoseRecord], names
+) -> None:
+    """``retry_rejected``: the objects ``names``, whose ok poses the verification score rejected, given the
+    retries of an object not found (:func:`retry_library`, :func:`retry`) from the image's keypoints,
+    detected again. The caller scores what they find."""
+    shot, keys, t_sift = look(objects, rgb, camera, frame_id, gt)
+    skip = frozenset(r.obj_name for r in records) - frozenset(names)
+    for r in records:
+        if r.obj_name in names:
+            r.timings["sift"] = r.timings.get("sift", 0.0) + t_sift / len(names)
+    retry_library(objects, shot, records, keys, skip)
+    if objects.conf.features.retry_contrast_threshold > 0:
+        retry(objects, shot, records, skip)
 
 
 def absent(objects: Objects, shot: Shot, name: str, keys: Keypoints) -> PoseRecord | None:
