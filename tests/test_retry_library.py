@@ -5,6 +5,7 @@ only weakly, are matched against once more (:func:`batchpose.method.single.retry
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -92,7 +93,8 @@ def shifted(library, model):
 def test_a_pose_the_verification_score_rejects_is_retried_and_the_retry_is_scored(cracker_model, cracker_library):
     """``retry_rejected``: a confident first pose the verification score rejects gives the object the second
     library, whose pose (within 0.1 d) passes the same score, and the record says both; without the option,
-    or without a second library, the rejected pose stays low_confidence."""
+    or without a second library, the rejected pose stays low_confidence; a retry's pose the score rejects
+    too is low_confidence, its reason naming both scores."""
     from tests.test_track import frame_of  # noqa: PLC0415
 
     name = cracker_model.name
@@ -101,6 +103,7 @@ def test_a_pose_the_verification_score_rejects_is_retried_and_the_retry_is_score
     rescued = estimator(cracker_model, wrong, cracker_library)
     kept = estimator(cracker_model, wrong, cracker_library, retry_rejected=False)
     alone = estimator(cracker_model, wrong)
+    twice = estimator(cracker_model, wrong, wrong)
     assert has_retries(rescued.objects, name) and not has_retries(alone.objects, name)  # alone: no SIFT again
     rng = np.random.default_rng(5)
     for k in range(2):
@@ -115,3 +118,10 @@ def test_a_pose_the_verification_score_rejects_is_retried_and_the_retry_is_score
         assert add_error(b.cam_from_model, T, pts) < 0.1 * cracker_model.diameter_m
         (c,) = kept.estimate_frame(frame, [name])
         assert (c.status, c.reason) == (a.status, a.reason)
+    (d,) = twice.estimate_frame(frame, [name])  # the retry's pose is rejected too: the record says both
+    assert d.status == "low_confidence", (d.status, d.reason)
+    both = (
+        r"found with the lit templates, after the verification score rejected the first pose \(0\.\d\d\); "
+        r"verification 0\.\d\d < min_verification 0\.5 \(outline .*\)"
+    )
+    assert re.fullmatch(both, d.reason), d.reason

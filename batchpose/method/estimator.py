@@ -203,11 +203,11 @@ class PoseEstimator:
             return
         trial = list(records)
         retry_rejected(self.objects, rgb, frame.camera, frame.frame_id, frame.gt, trial, list(first))
-        verify_poses(self.objects, frame, rgb, trial, sequence, checked)
         for rec in trial:
             old = first.get(rec.obj_name)
             if old is not None and rec is not old:
                 rec.reason += f", after the verification score rejected the first pose ({old.verification:.2f})"
+        verify_poses(self.objects, frame, rgb, trial, sequence, checked)
         records[:] = trial
 
 
