@@ -192,13 +192,11 @@ class PoseEstimator:
     def _retry_rejected(
         self, frame: Frame, rgb: np.ndarray, records: list[PoseRecord], sequence: Sequence, checked, was_ok
     ) -> None:
-        """``retry_rejected``: the retries for each object whose ok pose (among ``was_ok``) the verification
-        score rejected, and the score of what they find (``checked``: the poses :func:`verify_poses` scored).
+        """``retry_rejected``: the retries for each object whose ok pose (among ``was_ok``, the ok poses before
+        the score) the verification score rejected, and the score of what they find (``checked``: the poses
+        :func:`verify_poses` scored).
         ``records`` changes only when all of it ran."""
-        first = {
-            r.obj_name: r for r in was_ok
-            if not r.ok and checked.get(id(r)) is not None and has_retries(self.objects, r.obj_name)
-        }  # fmt: skip
+        first = {r.obj_name: r for r in was_ok if not r.ok and has_retries(self.objects, r.obj_name)}
         if not first:
             return
         trial = list(records)

@@ -52,7 +52,6 @@ def estimate_image(
     Raises:
         ImageError / CameraError: the image or calibration is unusable.
     """
-    conf = objects.conf
     camera.validate(frame_id)
     check_image(rgb, frame_id)
     for name in obj_names:
@@ -71,9 +70,7 @@ def estimate_image(
         rec.timings["presence"] = t_presence  # (like SIFT, the frame's lookup: every pair records it)
         records.append(rec)
     gone = frozenset(r.obj_name for r in records if r.status == "absent")
-    retry_library(objects, shot, records, keys, quick | no_retry | gone)
-    if conf.features.retry_contrast_threshold > 0:
-        retry(objects, shot, records, quick | no_retry | gone)
+    retries(objects, shot, records, keys, quick | no_retry | gone)
     return records
 
 
@@ -99,13 +96,19 @@ def retry_rejected(
     objects: Objects, rgb: np.ndarray, camera: Camera, frame_id: str, gt, records: list[PoseRecord], names
 ) -> None:
     """``retry_rejected``: the objects ``names``, whose ok poses the verification score rejected, given the
-    retries of an object not found (:func:`retry_library`, :func:`retry`) from the image's keypoints,
+    retries of an object not found (:func:`retries`) from the image's keypoints,
     detected again. The caller scores what they find."""
     shot, keys, t_sift = look(objects, rgb, camera, frame_id, gt)
     skip = frozenset(r.obj_name for r in records) - frozenset(names)
     for r in records:
         if r.obj_name in names:
             r.timings["sift"] = r.timings.get("sift", 0.0) + t_sift / len(names)
+    retries(objects, shot, records, keys, skip)
+
+
+def retries(objects: Objects, shot: Shot, records: list[PoseRecord], keys: Keypoints, skip) -> None:
+    """The retries, in order, of the objects not found or found weakly (not those in ``skip``): the second
+    library (:func:`retry_library`), then keypoints at the lower contrast threshold (:func:`retry`)."""
     retry_library(objects, shot, records, keys, skip)
     if objects.conf.features.retry_contrast_threshold > 0:
         retry(objects, shot, records, skip)
